@@ -1,0 +1,106 @@
+"""One cell of the ablation grid: (method, scenario, threshold, seed) -> train, embed, retrieve, write files.
+
+`notebooks/ablation_cell.ipynb` calls `run_cell`; so do the tests. A cell writes into its folder:
+`cell.json` (written last: its presence means the cell is complete), `rankings.csv` (top 10 per query),
+`protocol.csv` (which test frames were queries / positives), `embeddings.npy` and, for trained methods,
+`history.csv`.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import pandas as pd
+import torch
+
+from monolib import gcn, methods, paths, retrieval, scenegraphs
+from monolib.io import atomic_path, read_json, write_json, write_text
+from monolib.params import Study, StudyError
+
+log = logging.getLogger(__name__)
+IMAGE_SCENARIO = "rgb"  # image methods use neither the scenario's sources nor the threshold
+
+
+def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None) -> Path:
+    return Path(out_dir) if out_dir else paths.cell_dir(study.name, method, scenario, threshold, seed)
+
+
+def is_complete(folder: Path) -> bool:
+    return (folder / "cell.json").is_file()
+
+
+def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None,
+             force: bool = False) -> dict:
+    """Run one cell and return its `cell.json` content (read back when the cell is already complete)."""
+    threshold = float(threshold)
+    if method not in methods.METHODS:
+        raise StudyError(f"method {method!r}: unknown (known: {', '.join(sorted(methods.METHODS))})")
+    if methods.kind(method) == "graph" and scenario not in study.scenarios:
+        raise StudyError(f"scenario {scenario!r}: not in {study.path} (scenarios: {', '.join(study.scenarios)})")
+    if not threshold > 0:
+        raise StudyError(f"threshold {threshold}: expected a distance in metres > 0 or inf")
+    folder = cell_folder(study, method, scenario, threshold, seed, out_dir)
+    if is_complete(folder) and not force:
+        log.info("cell %s already complete", folder)
+        return read_json(folder / "cell.json")
+    folder.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(study.threads)
+    timings: dict[str, float] = {}
+    history = None
+
+    t = time.perf_counter()
+    if methods.kind(method) == "graph":
+        graphs = scenegraphs.load(study, scenario)
+        split = {k: [scenegraphs.at_threshold(g, threshold) for g in v] for k, v in graphs.items()}
+        timings["graphs_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        result = gcn.train(split["train"], split["val"], study.gcn, seed=seed, threads=study.threads)
+        history = pd.DataFrame(result.history)
+        timings["train_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        emb = gcn.embed(result.model, split["test"]).numpy()
+        test = split["test"]
+        frames, settings = [g.frame for g in test], [g.setting for g in test]
+        extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history),
+                 "test_nodes_mean": float(np.mean([g.num_nodes for g in test])),
+                 "test_edges_mean": float(np.mean([g.edge_index.shape[1] for g in test])),
+                 "test_empty_graphs": int(sum(g.num_nodes == 0 for g in test))}
+    else:
+        from monolib import baselines, dataset
+
+        ds = dataset.open_dataset(study)
+        sel = dataset.select_frames(study, ds, study.gcn.val_settings)
+        timings["graphs_s"] = 0.0
+        t = time.perf_counter()
+        emb = np.stack([getattr(baselines, method)(f.rgb) for f in sel.test])
+        frames, settings = [f.key for f in sel.test], [f.setting for f in sel.test]
+        extra = {}
+    timings["embed_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    metrics, rankings, draw = retrieval.evaluate(emb, frames, settings, study.protocol, seed)
+    timings["retrieval_s"] = time.perf_counter() - t
+
+    sc = study.scenarios.get(scenario)
+    record = {
+        "method": method, "scenario": scenario, "threshold": threshold if math.isfinite(threshold) else "inf",
+        "seed": int(seed), "study": study.name, "study_file": study.path,
+        "scenario_label": sc.label if sc else "RGB only (no graph)",
+        "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
+        "protocol": {"settings": study.protocol.settings, "frames": study.protocol.frames,
+                     "queries": study.protocol.queries, "positives": study.protocol.positives},
+        "metrics": metrics, "timings": timings, **extra,
+    }
+    write_text(folder / "rankings.csv", rankings.to_csv(index=False))
+    write_text(folder / "protocol.csv", draw.table().to_csv(index=False))
+    with atomic_path(folder / "embeddings.npy") as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, np.asarray(emb, dtype=np.float32))
+    if history is not None:
+        write_text(folder / "history.csv", history.to_csv(index=False))
+    write_json(folder / "cell.json", record)  # last: marks the cell complete
+    return record

@@ -1,0 +1,73 @@
+"""The frames a study uses: open (or render) its dataset and select train / validation / test frames."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from monolib.hypersim import Frame, HypersimDataset
+from monolib.params import Study
+
+log = logging.getLogger(__name__)
+
+
+def ensure_dataset(study: Study, progress: bool = True) -> HypersimDataset:
+    """The study's dataset, rendering the mini-Hypersim first when the study is synthetic (resumable, cached)."""
+    if study.dataset.source == "synth":
+        from monolib import synth
+
+        synth.render_dataset(study, study.dataset_root, progress=progress)
+    return open_dataset(study)
+
+
+def open_dataset(study: Study) -> HypersimDataset:
+    return HypersimDataset(study.dataset_root, study.metadata_dir)
+
+
+def _evenly(items: list, n: int) -> list:
+    if len(items) <= n:
+        return list(items)
+    idx = np.round(np.linspace(0, len(items) - 1, n)).astype(int)
+    return [items[i] for i in idx]
+
+
+@dataclass
+class Selection:
+    train: list[Frame]   # training split, minus the validation settings
+    val: list[Frame]     # held-out training settings (model selection, early stopping)
+    test: list[Frame]    # the protocol's test settings x frames
+
+    def all(self) -> list[Frame]:
+        return self.train + self.val + self.test
+
+
+def select_frames(study: Study, ds: HypersimDataset, val_settings: int) -> Selection:
+    """Deterministic frame selection.
+
+    Test: the first `protocol.settings` test settings (sorted by name) holding at least `protocol.frames` frames,
+    `protocol.frames` frames each, evenly spread over the setting's scenes. Train: every other training setting
+    (`train_frames_per_setting` frames each, evenly spread); the last `val_settings` of them are validation.
+    Real Hypersim's 'val' partition counts as training data here (the study's validation is taken from it).
+    """
+    pr = study.protocol
+    test_names = [s for s in ds.settings("test") if len(ds.frames(s)) >= pr.frames]
+    if study.dataset.max_settings:
+        test_names = test_names[: max(pr.settings, study.dataset.max_settings)]
+    if len(test_names) < pr.settings:
+        raise ValueError(
+            f"{ds.root}: the protocol needs {pr.settings} test settings with >= {pr.frames} frames, "
+            f"found {len(test_names)} (test settings in the split: {len(ds.settings('test'))})"
+        )
+    test = [f for s in test_names[: pr.settings] for f in _evenly(ds.frames(s), pr.frames)]
+    train_names = ds.settings("train") + ds.settings("val")
+    train_names = sorted(train_names)
+    if study.dataset.max_settings:
+        train_names = train_names[: study.dataset.max_settings]
+    if len(train_names) <= val_settings:
+        raise ValueError(f"{ds.root}: {len(train_names)} training settings, need more than {val_settings} (validation)")
+    per = study.dataset.train_frames_per_setting
+    fit_names, val_names = train_names[: len(train_names) - val_settings], train_names[len(train_names) - val_settings :]
+    train = [f for s in fit_names for f in _evenly(ds.frames(s), per)]
+    val = [f for s in val_names for f in _evenly(ds.frames(s), per)]
+    return Selection(train, val, test)

@@ -1,0 +1,88 @@
+"""File helpers shared by every stage: atomic writes, Hypersim-style HDF5, JSON, and the one figure saver."""
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+import h5py
+import numpy as np
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside `path`; rename it onto `path` only if the block succeeds.
+
+    A run killed half-way leaves no half-written file under the final name.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def write_text(path: str | os.PathLike, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> None:
+    write_text(path, json.dumps(obj, indent=2, sort_keys=True, allow_nan=True) + "\n")
+
+
+def read_json(path: str | os.PathLike) -> Any:
+    with open(path) as f:
+        return json.load(f)
+
+
+def write_h5(path: str | os.PathLike, array: np.ndarray, compression: int | None = 9) -> None:
+    """One dataset named ``dataset``, gzip, no attributes: Hypersim's per-frame file format."""
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            if np.ndim(array) == 0 or compression is None:
+                f.create_dataset("dataset", data=array)
+            else:
+                f.create_dataset("dataset", data=array, compression="gzip", compression_opts=compression)
+
+
+class DataFileError(RuntimeError):
+    """A data file is missing, unreadable or not what the format says; the message names the file."""
+
+
+def read_h5(path: str | os.PathLike) -> np.ndarray:
+    """The ``dataset`` of a Hypersim-style HDF5 file; one clear error naming the file otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataFileError(f"{path}: file not found")
+    try:
+        with h5py.File(path, "r") as f:
+            if "dataset" not in f:
+                raise DataFileError(f"{path}: no dataset named 'dataset' (found {list(f.keys())})")
+            return f["dataset"][()]
+    except DataFileError:
+        raise
+    except Exception as exc:  # h5py raises OSError and friends on truncated or foreign files
+        raise DataFileError(f"{path}: not a readable HDF5 file ({exc})") from exc
+
+
+def save_figure(fig, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Save a matplotlib figure with pinned metadata, so an unchanged figure re-saves to the same bytes."""
+    import matplotlib
+
+    path = Path(path)
+    ext = path.suffix.lower()
+    metadata = {".png": {"Software": None}, ".pdf": {"CreationDate": None}, ".svg": {"Date": None}}.get(ext, {})
+    with matplotlib.rc_context({"svg.hashsalt": "monograph"}):
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format=ext.lstrip("."), dpi=dpi, metadata=metadata, bbox_inches="tight")
+    return path

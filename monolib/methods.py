@@ -1,0 +1,16 @@
+"""The registry of retrieval methods a study can list under `methods:`.
+
+A *graph* method trains a graph encoder on the scene graphs of a scenario; an *image* method embeds the RGB
+frames directly (it ignores the scenario's depth and semantic sources and the threshold).
+"""
+from __future__ import annotations
+
+# name -> (kind, description)
+METHODS: dict[str, tuple[str, str]] = {
+    "gcn": ("graph", "the paper's encoder: 5 GCNConv(128) + Linear(64) + global max pool, triplet loss"),
+    "color_hist": ("image", "global HSV colour histogram, no training (calibration baseline)"),
+}
+
+
+def kind(method: str) -> str:
+    return METHODS[method][0]

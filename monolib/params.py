@@ -1,0 +1,341 @@
+"""Studies as data: load and validate a study file (`params/<name>.yaml`).
+
+A study file is checked completely before any work starts: an unknown key, a wrong type, a missing file or an
+impossible value is one `StudyError` that names the key (``dataset.width``) and the file.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+import yaml
+
+from monolib import paths
+
+
+class StudyError(ValueError):
+    """A study file that cannot be run; the message names the file and the key."""
+
+
+@dataclass
+class DatasetSpec:
+    source: str = "synth"                    # synth: render a mini-Hypersim; hypersim: a real download at `root`
+    root: Optional[str] = None               # hypersim: the download; synth: where to render (default runs/<study>/dataset)
+    metadata_dir: Optional[str] = None       # folder with metadata_images_split_scene_v1.csv etc. (default: root)
+    width: int = 256
+    height: int = 192
+    train_settings: int = 48                 # synth: settings rendered for the training split
+    test_settings: int = 16                  # synth: settings rendered for the test split
+    family_size: int = 2                     # synth: settings per family (same catalogue and materials)
+    frames_per_setting: int = 41             # frames per test setting (all scenes together)
+    train_frames_per_setting: int = 20       # frames per training setting
+    dim_fraction: float = 0.2                # synth: share of dim settings
+    tilt_shift_settings: int = 2             # synth: settings rendered with ai_037_002's tilt-shift camera
+    max_settings: Optional[int] = None       # hypersim: use at most this many settings per split (None: all)
+    workers: int = 2                         # synth: parallel render processes
+
+
+@dataclass
+class SegmentationSpec:
+    name: str = "deeplab"
+    backbone: str = "mobilenet_v3_large"     # resnet50 | resnet101 | mobilenet_v3_large
+    pretrained: bool = False                 # torchvision weight enums (needs the weights cached locally)
+    epochs: int = 8
+    batch_size: int = 8
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    train_height: int = 192                  # training / inference resolution
+    train_width: int = 256
+    val_settings: int = 4                    # held-out training settings for model selection
+    checkpoint: Optional[str] = None         # a .pt state dict to load instead of training
+
+
+@dataclass
+class DepthSpec:
+    name: str = "depth_r18"
+    role: str = "ResNet50"                   # which of the paper's AdelaiDepth models this one stands for
+    backbone: str = "resnet18"               # resnet18 | resnet34 | resnet50 | resnet101 | resnext101_32x8d
+    pretrained: bool = False
+    epochs: int = 8
+    batch_size: int = 8
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    train_height: int = 192
+    train_width: int = 256
+    val_settings: int = 4
+    checkpoint: Optional[str] = None         # an original AdelaiDepth LeReS checkpoint (weights under depth_model.)
+    decoder_width: int = 64                  # LeReS-style decoder channels (LeReS itself: 256); ignored with checkpoint
+
+
+@dataclass
+class PerceptionSpec:
+    threads: int = 2
+    segmentation: SegmentationSpec = field(default_factory=SegmentationSpec)
+    depth: list[DepthSpec] = field(default_factory=lambda: [DepthSpec()])
+
+
+@dataclass
+class Scenario:
+    depth: str = "gt"                        # gt or a depth model name
+    semantic: str = "gt"                     # gt or the segmentation model name
+    label: str = ""
+    depth_scale: float = 1.0                 # multiply the depth source (controlled depth-scale experiments)
+
+
+@dataclass
+class GCNSpec:
+    hidden: int = 128
+    layers: int = 5
+    out: int = 64
+    epochs: int = 60
+    batch_size: int = 64
+    lr: float = 1e-3
+    weight_decay: float = 0.0
+    margin: float = 1.0
+    patience: int = 10
+    val_settings: int = 4                    # training settings held out for early stopping
+
+
+@dataclass
+class Protocol:
+    settings: int = 16
+    frames: int = 41
+    queries: int = 35
+    positives: int = 6
+    recall_k: list[int] = field(default_factory=lambda: [1, 5, 10])
+    precision_k: list[int] = field(default_factory=lambda: [2, 4, 6])
+
+
+@dataclass
+class Study:
+    name: str = "smoke"
+    seed: int = 0
+    threads: int = 2
+    jobs: int = 2                            # parallel papermill workers for the grid
+    cell_timeout: int = 1800                 # seconds per notebook cell
+    graphs_root: Optional[str] = None        # published graph files (train/ and test/) instead of a dataset
+    dataset: DatasetSpec = field(default_factory=DatasetSpec)
+    perception: PerceptionSpec = field(default_factory=PerceptionSpec)
+    scenarios: dict[str, Scenario] = field(default_factory=lambda: {"s1": Scenario(label="GT depth, GT semantics")})
+    thresholds: list[float] = field(default_factory=lambda: [1.0, 2.0, 5.0, 10.0, math.inf])
+    seeds: list[int] = field(default_factory=lambda: [0])
+    methods: list[str] = field(default_factory=lambda: ["gcn"])
+    gcn: GCNSpec = field(default_factory=GCNSpec)
+    protocol: Protocol = field(default_factory=Protocol)
+    path: Optional[str] = None               # the file it was loaded from (set by `load_study`)
+
+    # ---- derived -----------------------------------------------------------------------------------------
+    @property
+    def dir(self) -> Path:
+        return paths.study_dir(self.name)
+
+    @property
+    def dataset_root(self) -> Path:
+        if self.dataset.root:
+            return resolve_path(self.dataset.root, self.path)
+        return self.dir / "dataset"
+
+    @property
+    def metadata_dir(self) -> Optional[Path]:
+        return resolve_path(self.dataset.metadata_dir, self.path) if self.dataset.metadata_dir else None
+
+    def model_names(self) -> list[str]:
+        return [self.perception.segmentation.name] + [d.name for d in self.perception.depth]
+
+    def depth_spec(self, name: str) -> DepthSpec:
+        for d in self.perception.depth:
+            if d.name == name:
+                return d
+        raise StudyError(f"{self.path}: no depth model named {name!r} (have {[d.name for d in self.perception.depth]})")
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.pop("path")
+        return d
+
+
+def resolve_path(value: str, study_path: Optional[str]) -> Path:
+    """A path from a study file: absolute, or relative to the project root."""
+    p = Path(value).expanduser()
+    return p if p.is_absolute() else (paths.ROOT / p)
+
+
+def key_of(obj: Any) -> str:
+    """A short stable hash of parameters (dataclasses, dicts, lists, numbers): the cache key of a stage."""
+    if dataclasses.is_dataclass(obj):
+        obj = dataclasses.asdict(obj)
+    text = json.dumps(obj, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+# ---- validation ----------------------------------------------------------------------------------------------
+
+def _type_name(tp) -> str:
+    return getattr(tp, "__name__", str(tp)).replace("typing.", "")
+
+
+def _convert(value: Any, tp, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if origin is typing.Union:  # Optional[X]
+        if value is None:
+            return None
+        inner = [a for a in args if a is not type(None)][0]
+        return _convert(value, inner, where)
+    if dataclasses.is_dataclass(tp):
+        if not isinstance(value, dict):
+            raise StudyError(f"{where}: expected a mapping of {sorted(f.name for f in dataclasses.fields(tp))}, got {value!r}")
+        return _build(tp, value, where)
+    if origin is list:
+        if not isinstance(value, list):
+            raise StudyError(f"{where}: expected a list, got {value!r}")
+        return [_convert(v, args[0], f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict) or not value:
+            raise StudyError(f"{where}: expected a non-empty mapping, got {value!r}")
+        return {str(k): _convert(v, args[1], f"{where}.{k}") for k, v in value.items()}
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise StudyError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise StudyError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "infinity", ".inf"):
+            return math.inf
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise StudyError(f"{where}: expected a number (or 'inf'), got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, str):
+            raise StudyError(f"{where}: expected a string, got {value!r}")
+        return value
+    raise StudyError(f"{where}: unsupported type {_type_name(tp)}")
+
+
+def _build(cls, data: dict, where: str):
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)} - {"path"}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise StudyError(f"{where + '.' if where else ''}{unknown[0]}: unknown key (allowed: {', '.join(sorted(names))})")
+    kwargs = {k: _convert(v, hints[k], f"{where + '.' if where else ''}{k}") for k, v in data.items()}
+    return cls(**kwargs)
+
+
+def _check(study: Study, check_files: bool = True) -> None:
+    def bad(key: str, msg: str):
+        raise StudyError(f"{key}: {msg}")
+
+    ds, pr = study.dataset, study.protocol
+    if ds.source not in ("synth", "hypersim"):
+        bad("dataset.source", f"expected 'synth' or 'hypersim', got {ds.source!r}")
+    if ds.source == "hypersim" and not ds.root and not study.graphs_root:
+        bad("dataset.root", "a hypersim study needs the folder of the download")
+    if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root, study.path).is_dir() and not study.graphs_root:
+        bad("dataset.root", f"folder not found: {resolve_path(ds.root, study.path)}")
+    if check_files and study.graphs_root and not resolve_path(study.graphs_root, study.path).is_dir():
+        bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root, study.path)}")
+    for key in ("width", "height"):
+        v = getattr(ds, key)
+        if not 16 <= v <= {"width": 1024, "height": 768}[key]:
+            bad(f"dataset.{key}", f"expected 16..{ {'width': 1024, 'height': 768}[key]}, got {v}")
+    if ds.width * 3 != ds.height * 4:
+        bad("dataset.width", f"Hypersim frames are 4:3; got {ds.width}x{ds.height}")
+    for key in ("train_settings", "test_settings", "family_size", "frames_per_setting", "train_frames_per_setting", "workers"):
+        if getattr(ds, key) < 1:
+            bad(f"dataset.{key}", f"expected at least 1, got {getattr(ds, key)}")
+    if not 0.0 <= ds.dim_fraction <= 1.0:
+        bad("dataset.dim_fraction", f"expected 0..1, got {ds.dim_fraction}")
+    if pr.queries + pr.positives != pr.frames:
+        bad("protocol.queries", f"queries ({pr.queries}) + positives ({pr.positives}) must equal frames ({pr.frames})")
+    if pr.queries < 1 or pr.positives < 1 or pr.settings < 2:
+        bad("protocol.settings", "need at least 2 settings, 1 query and 1 positive per setting")
+    if ds.source == "synth" and not study.graphs_root:
+        if pr.settings > ds.test_settings:
+            bad("protocol.settings", f"{pr.settings} test settings asked, the dataset renders {ds.test_settings}")
+        if pr.frames > ds.frames_per_setting:
+            bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders {ds.frames_per_setting}")
+    for k in pr.recall_k + pr.precision_k:
+        if k < 1:
+            bad("protocol.recall_k", f"k must be at least 1, got {k}")
+    if not study.thresholds:
+        bad("thresholds", "expected at least one threshold")
+    for t in study.thresholds:
+        if not t > 0:
+            bad("thresholds", f"thresholds are distances in metres > 0 (or inf), got {t}")
+    if not study.seeds:
+        bad("seeds", "expected at least one seed")
+    names = study.model_names()
+    if len(set(names)) != len(names) or "gt" in names:
+        bad("perception", f"model names must be unique and not 'gt', got {names}")
+    seg = study.perception.segmentation
+    if seg.backbone not in ("resnet50", "resnet101", "mobilenet_v3_large"):
+        bad("perception.segmentation.backbone", f"expected resnet50, resnet101 or mobilenet_v3_large, got {seg.backbone!r}")
+    for i, d in enumerate(study.perception.depth):
+        if d.backbone not in ("resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d", "resnext101_32x8d"):
+            bad(f"perception.depth[{i}].backbone", f"unknown backbone {d.backbone!r}")
+        if d.checkpoint and d.backbone not in ("resnet50", "resnext101_32x8d"):
+            bad(f"perception.depth[{i}].backbone", f"an AdelaiDepth checkpoint needs backbone resnet50 or resnext101_32x8d, got {d.backbone!r}")
+        if d.decoder_width < 8 or d.decoder_width % 2:
+            bad(f"perception.depth[{i}].decoder_width", f"expected an even number >= 8, got {d.decoder_width}")
+        if d.checkpoint and not resolve_path(d.checkpoint, study.path).is_file():
+            bad(f"perception.depth[{i}].checkpoint", f"file not found: {resolve_path(d.checkpoint, study.path)}")
+    if seg.checkpoint and not resolve_path(seg.checkpoint, study.path).is_file():
+        bad("perception.segmentation.checkpoint", f"file not found: {resolve_path(seg.checkpoint, study.path)}")
+    for sname, sc in study.scenarios.items():
+        if sc.depth != "gt" and sc.depth not in [d.name for d in study.perception.depth]:
+            bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {[d.name for d in study.perception.depth]}, got {sc.depth!r}")
+        if sc.semantic not in ("gt", seg.name):
+            bad(f"scenarios.{sname}.semantic", f"expected 'gt' or {seg.name!r}, got {sc.semantic!r}")
+        if not sc.depth_scale > 0:
+            bad(f"scenarios.{sname}.depth_scale", f"expected > 0, got {sc.depth_scale}")
+        if study.graphs_root and (sc.depth != "gt" or sc.semantic != "gt"):
+            bad(f"scenarios.{sname}", "published graphs only hold ground-truth scenarios (depth: gt, semantic: gt)")
+    from monolib.methods import METHODS  # late import: the registry of methods
+
+    for m in study.methods:
+        if m not in METHODS:
+            bad("methods", f"unknown method {m!r} (known: {', '.join(sorted(METHODS))})")
+    if study.gcn.layers < 1 or study.gcn.epochs < 1:
+        bad("gcn.layers", "layers and epochs must be at least 1")
+
+
+def find_study(study: str | Path) -> Path:
+    """A study name from `params/` (``quick``) or a path to a YAML file."""
+    p = Path(study)
+    if p.suffix in (".yaml", ".yml"):
+        p = p if p.is_absolute() else (Path.cwd() / p if (Path.cwd() / p).exists() else paths.ROOT / p)
+    else:
+        p = paths.PARAMS / f"{study}.yaml"
+    if not p.is_file():
+        known = sorted(q.stem for q in paths.PARAMS.glob("*.yaml"))
+        raise StudyError(f"{p}: study file not found (studies in params/: {', '.join(known)})")
+    return p.resolve()
+
+
+def load_study(study: str | Path, check_files: bool = True) -> Study:
+    """Load and validate a study; `check_files=False` skips checks that the data folders exist (for reading a
+    study meant for another machine)."""
+    path = find_study(study)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise StudyError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(data, dict):
+        raise StudyError(f"{path}: expected a mapping of study keys at the top level")
+    try:
+        s = _build(Study, data, "")
+        s.path = str(path)
+        _check(s, check_files)
+    except StudyError as exc:
+        raise StudyError(f"{path}: {exc}") from None
+    return s

@@ -1,0 +1,39 @@
+"""Every path of the project comes from here; nothing depends on the current working directory."""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent
+ROOT = PACKAGE.parent
+PARAMS = ROOT / "params"
+NOTEBOOKS = ROOT / "notebooks"
+FIGURES = Path(os.environ.get("MONOLIB_FIGURES", ROOT / "figures"))
+RUNS = Path(os.environ.get("MONOLIB_RUNS", ROOT / "runs"))
+DATA = PACKAGE / "data"
+
+
+def study_dir(study_name: str) -> Path:
+    """`runs/<study>/`: datasets, checkpoints, predictions, graphs, cells and executed notebooks of one study."""
+    return RUNS / study_name
+
+
+def threshold_tag(threshold: float) -> str:
+    """Folder-safe name of a threshold: 1.0 -> '1', 2.5 -> '2.5', inf -> 'inf'."""
+    t = float(threshold)
+    if t == float("inf"):
+        return "inf"
+    return f"{t:g}"
+
+
+def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed: int) -> Path:
+    """`runs/<study>/cells/<method>/<scenario>__t<threshold>__s<seed>/`."""
+    return study_dir(study_name) / "cells" / method / f"{scenario}__t{threshold_tag(threshold)}__s{int(seed)}"
+
+
+DEFAULT_STUDY = "quick"
+
+
+def figures_dir(study_name: str) -> Path:
+    """Where a study's tables and figures go: `figures/` for the default (quick) study, else `runs/<study>/figures/`."""
+    return FIGURES if study_name == DEFAULT_STUDY else study_dir(study_name) / "figures"

@@ -1,0 +1,108 @@
+"""The graph stage: one complete scene graph per selected frame and scenario, cached on disk.
+
+A cached graph holds its nodes (`x`, and `pos` when built from depth) and every node pair i < j with its length
+(`pair_index`, `pair_len`). A threshold then only filters pairs (`at_threshold`), so the five thresholds of the
+ablation share one build, and published graph files (lengths without positions) fit the same format.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch_geometric.data import Data
+from tqdm.auto import tqdm
+
+from monolib import dataset as dataset_mod
+from monolib.graph import NODE_FEATURES, scene_nodes
+from monolib.io import atomic_path
+from monolib.params import Study, key_of
+
+log = logging.getLogger(__name__)
+SPLITS = ("train", "val", "test")
+
+
+def complete_graph(x, pos, setting: str, frame: str) -> Data:
+    """A graph with every pair i < j and its length (from `pos`)."""
+    x = torch.as_tensor(np.asarray(x), dtype=torch.float32).reshape(-1, NODE_FEATURES)
+    pos = torch.as_tensor(np.asarray(pos), dtype=torch.float32).reshape(-1, 3)
+    i, j = torch.triu_indices(len(x), len(x), offset=1)
+    length = (pos[i].double() - pos[j].double()).norm(dim=1).float()
+    return Data(x=x, pos=pos, pair_index=torch.stack([i, j]), pair_len=length, setting=setting, frame=frame,
+                num_nodes=len(x))
+
+
+def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Data:
+    """The scene graph of `threshold`: edges for pairs closer than it (inf: all), in both directions by default.
+
+    `edge_attr` (E, 1) holds the lengths. Works for graphs built here and for published graphs alike.
+    """
+    keep = g.pair_len < threshold if math.isfinite(threshold) else torch.ones_like(g.pair_len, dtype=torch.bool)
+    ei, length = g.pair_index[:, keep], g.pair_len[keep]
+    if both_directions:
+        ei, length = torch.cat([ei, ei.flip(0)], dim=1), torch.cat([length, length])
+    out = Data(x=g.x, edge_index=ei, edge_attr=length.unsqueeze(1), setting=g.setting, frame=g.frame,
+               num_nodes=g.num_nodes)
+    if getattr(g, "pos", None) is not None:
+        out.pos = g.pos
+    return out
+
+
+def scenario_key(study: Study, scenario: str) -> str:
+    """Cache key of a scenario's graphs: the dataset, the frame selection and the two sources' model keys."""
+    from monolib import perception
+
+    sc = study.scenarios[scenario]
+    sources = {}
+    for role, name in (("depth", sc.depth), ("semantic", sc.semantic)):
+        sources[role] = "gt" if name == "gt" else perception.model_key(study, name)
+    return key_of({"dataset": study.dataset, "graphs_root": study.graphs_root, "seed": study.seed,
+                   "protocol": study.protocol, "val": study.gcn.val_settings, "sources": sources,
+                   "depth_scale": sc.depth_scale, "version": 1})
+
+
+def graphs_path(study: Study, scenario: str) -> Path:
+    return study.dir / "graphs" / f"{scenario}-{scenario_key(study, scenario)}.pt"
+
+
+def build(study: Study, scenario: str, progress: bool = True) -> Path:
+    """Build (or find cached) the graphs of every selected frame for one scenario."""
+    path = graphs_path(study, scenario)
+    if path.exists():
+        log.info("graphs: %s cached (%s)", scenario, path.name)
+        return path
+    t0 = time.perf_counter()
+    if study.graphs_root:
+        from monolib import published
+
+        graphs = published.select(study)
+    else:
+        from monolib import perception
+
+        sc = study.scenarios[scenario]
+        ds = dataset_mod.open_dataset(study)
+        sel = dataset_mod.select_frames(study, ds, study.gcn.val_settings)
+        depth_of = perception.depth_source(study, sc.depth)
+        semantic_of = perception.semantic_source(study, sc.semantic)
+        graphs = {}
+        for split in SPLITS:
+            frames = getattr(sel, split)
+            out = []
+            for f in tqdm(frames, desc=f"graphs {scenario} {split}", disable=not progress, leave=False):
+                depth = depth_of(f) * np.float32(sc.depth_scale)
+                x, pos = scene_nodes(f.rgb, depth, semantic_of(f), f.camera)
+                out.append(complete_graph(x, pos, f.setting, f.key))
+            graphs[split] = out
+    with atomic_path(path) as tmp:
+        torch.save({"scenario": scenario, "graphs": graphs, "seconds": time.perf_counter() - t0}, tmp)
+    n = sum(len(v) for v in graphs.values())
+    log.info("graphs: %s built, %d graphs in %.1f s", scenario, n, time.perf_counter() - t0)
+    return path
+
+
+def load(study: Study, scenario: str, progress: bool = False) -> dict[str, list[Data]]:
+    """{'train': [...], 'val': [...], 'test': [...]} complete graphs of a scenario (built when missing)."""
+    return torch.load(build(study, scenario, progress), weights_only=False)["graphs"]

@@ -1,0 +1,317 @@
+"""Semantic segmentation: torchvision DeepLabV3 (ASPP head), 40 NYU40 classes, trained from the study's frames.
+
+Label convention: NYU40 id k (1..40) is class k-1; unlabelled pixels (-1) are ignored by the loss and by the
+metrics. `predict` returns NYU40 ids again (int16, 1..40), at the input's size.
+
+Also holds the small tensor helpers the depth network shares (image normalisation, resizing, augmentation).
+"""
+from __future__ import annotations
+
+import copy
+import logging
+import time
+from pathlib import Path
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from monolib.labels import NUM_CLASSES
+
+log = logging.getLogger(__name__)
+
+IGNORE = 255
+MEAN = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+STD = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+
+
+class PretrainedUnavailable(RuntimeError):
+    """Pretrained weights were asked for but are not in torch hub's cache (this machine has no internet)."""
+
+
+# ---- shared tensor helpers ---------------------------------------------------------------------------------
+
+def resize_image(rgb: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W, 3) uint8 -> (height, width, 3) uint8, bilinear (antialiased when shrinking)."""
+    if rgb.shape[:2] == (height, width):
+        return rgb
+    t = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1)[None].float()
+    t = F.interpolate(t, size=(height, width), mode="bilinear", align_corners=False, antialias=True)
+    return t[0].permute(1, 2, 0).round().clamp(0, 255).to(torch.uint8).numpy()
+
+
+def resize_nearest(a: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(H, W) label or depth map -> (height, width), nearest neighbour (no label mixing, NaN stays local)."""
+    if a.shape[:2] == (height, width):
+        return a
+    rows = np.minimum(((np.arange(height) + 0.5) * a.shape[0] / height).astype(int), a.shape[0] - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * a.shape[1] / width).astype(int), a.shape[1] - 1)
+    return a[rows[:, None], cols[None, :]]
+
+
+def normalise(x_uint8: torch.Tensor) -> torch.Tensor:
+    """(N, 3, H, W) uint8 (or float 0..255) -> ImageNet-normalised float."""
+    return (x_uint8.float() / 255.0 - MEAN) / STD
+
+
+def to_batch(rgb: np.ndarray | Sequence[np.ndarray]) -> torch.Tensor:
+    """(N, H, W, 3) uint8 array or list of (H, W, 3) -> (N, 3, H, W) uint8 tensor."""
+    arr = np.stack(list(rgb)) if not isinstance(rgb, np.ndarray) else rgb
+    if arr.ndim == 3:
+        arr = arr[None]
+    if arr.dtype != np.uint8 or arr.shape[-1] != 3:
+        raise ValueError(f"expected uint8 images (N, H, W, 3), got {arr.dtype} {arr.shape}")
+    return torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2).contiguous()
+
+
+def colour_jitter(x: torch.Tensor, gen: torch.Generator, strength: float = 0.3) -> torch.Tensor:
+    """Per-image brightness, contrast and saturation jitter on a float 0..255 batch (N, 3, H, W)."""
+    n = x.shape[0]
+
+    def factor():
+        return (1.0 + (torch.rand(n, 1, 1, 1, generator=gen) * 2 - 1) * strength)
+
+    x = x * factor()
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    x = (x - mean) * factor() + mean
+    grey = (0.299 * x[:, 0:1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:3])
+    x = (x - grey) * factor() + grey
+    return x.clamp(0, 255)
+
+
+def set_seed(seed: int) -> torch.Generator:
+    torch.manual_seed(seed)
+    g = torch.Generator()
+    g.manual_seed(seed)
+    return g
+
+
+# ---- the model ---------------------------------------------------------------------------------------------
+
+_BUILDERS = {
+    # backbone: (builder name, full-model weight enum, backbone weight enum)
+    "mobilenet_v3_large": ("deeplabv3_mobilenet_v3_large", "DeepLabV3_MobileNet_V3_Large_Weights", "MobileNet_V3_Large_Weights"),
+    "resnet50": ("deeplabv3_resnet50", "DeepLabV3_ResNet50_Weights", "ResNet50_Weights"),
+    "resnet101": ("deeplabv3_resnet101", "DeepLabV3_ResNet101_Weights", "ResNet101_Weights"),
+}
+
+
+def cached_weights(weights) -> Path:
+    """The file torch hub would download `weights` to; `PretrainedUnavailable` when it is not there."""
+    filename = weights.url.split("/")[-1]
+    path = Path(torch.hub.get_dir()) / "checkpoints" / filename
+    if not path.is_file():
+        raise PretrainedUnavailable(
+            f"pretrained weights {weights} are unavailable offline: this machine cannot download {weights.url}. "
+            f"Copy that file to {path} (torch hub's cache), or set `checkpoint:` in the study file to a state "
+            f"dict of the model, or set `pretrained: false`."
+        )
+    return path
+
+
+def build_model(spec) -> nn.Module:
+    """DeepLabV3 with the spec's backbone, 40 classes, no auxiliary classifier; offline unless `pretrained`."""
+    import torchvision.models.segmentation as seg
+
+    builder_name, full_enum, _ = _BUILDERS[spec.backbone]
+    builder = getattr(seg, builder_name)
+    if spec.pretrained:
+        weights = getattr(seg, full_enum).DEFAULT
+        cached_weights(weights)  # fail fast and clearly instead of trying the network
+        model = builder(weights=weights, aux_loss=None)
+        model.aux_classifier = None
+        last = model.classifier[-1]
+        model.classifier[-1] = nn.Conv2d(last.in_channels, NUM_CLASSES, kernel_size=1)
+    else:
+        model = builder(weights=None, weights_backbone=None, num_classes=NUM_CLASSES, aux_loss=False)
+    model.input_size = (spec.train_height, spec.train_width)
+    return model
+
+
+def targets_from_semantic(semantic: np.ndarray) -> np.ndarray:
+    """NYU40 ids (1..40, -1) -> class indices 0..39, IGNORE elsewhere (uint8)."""
+    s = np.asarray(semantic)
+    return np.where((s >= 1) & (s <= NUM_CLASSES), s - 1, IGNORE).astype(np.uint8)
+
+
+# ---- data --------------------------------------------------------------------------------------------------
+
+def load_cache(frames, height: int, width: int, progress: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Read frames once: (N, 3, h, w) uint8 images and (N, h, w) uint8 class targets at training resolution."""
+    from tqdm.auto import tqdm
+
+    imgs = np.zeros((len(frames), height, width, 3), np.uint8)
+    tgts = np.full((len(frames), height, width), IGNORE, np.uint8)
+    for i, f in enumerate(tqdm(frames, desc="read frames", disable=not progress, leave=False)):
+        imgs[i] = resize_image(f.rgb, height, width)
+        sem = f.semantic
+        if sem is not None:
+            tgts[i] = targets_from_semantic(resize_nearest(sem, height, width))
+    return to_batch(imgs), torch.from_numpy(tgts)
+
+
+def augment(x: torch.Tensor, y: torch.Tensor, gen: torch.Generator, max_scale: float = 1.5):
+    """Flip, random scale-up + crop back to size (labels nearest), colour jitter. x uint8 (N,3,H,W), y (N,H,W)."""
+    n, _, h, w = x.shape
+    xf = x.float()
+    yl = y.long()
+    out_x, out_y = [], []
+    for i in range(n):
+        xi, yi = xf[i : i + 1], yl[i : i + 1]
+        if torch.rand(1, generator=gen).item() < 0.5:
+            xi, yi = xi.flip(-1), yi.flip(-1)
+        s = 1.0 + torch.rand(1, generator=gen).item() * (max_scale - 1.0)
+        if s > 1.02:
+            hh, ww = int(round(h * s)), int(round(w * s))
+            xi = F.interpolate(xi, size=(hh, ww), mode="bilinear", align_corners=False)
+            yi = F.interpolate(yi[:, None].float(), size=(hh, ww), mode="nearest")[:, 0].long()
+            top = int(torch.randint(0, hh - h + 1, (1,), generator=gen))
+            left = int(torch.randint(0, ww - w + 1, (1,), generator=gen))
+            xi, yi = xi[..., top : top + h, left : left + w], yi[..., top : top + h, left : left + w]
+        out_x.append(xi)
+        out_y.append(yi)
+    return colour_jitter(torch.cat(out_x), gen), torch.cat(out_y)
+
+
+# ---- metrics -----------------------------------------------------------------------------------------------
+
+def confusion(gt: np.ndarray, pred: np.ndarray, n: int = NUM_CLASSES) -> np.ndarray:
+    """(n, n) int64 confusion matrix [true class, predicted class] over labelled pixels (NYU40 ids 1..n)."""
+    gt = np.asarray(gt).ravel().astype(np.int64)
+    pred = np.asarray(pred).ravel().astype(np.int64)
+    ok = (gt >= 1) & (gt <= n) & (pred >= 1) & (pred <= n)
+    return np.bincount((gt[ok] - 1) * n + (pred[ok] - 1), minlength=n * n).reshape(n, n)
+
+
+def scores(conf: np.ndarray) -> dict:
+    """Pixel accuracy and mIoU (over classes present in the ground truth or the prediction)."""
+    total = conf.sum()
+    tp = np.diag(conf).astype(np.float64)
+    union = conf.sum(0) + conf.sum(1) - tp
+    present = union > 0
+    return {
+        "pixel_accuracy": float(tp.sum() / total) if total else float("nan"),
+        "miou": float((tp[present] / union[present]).mean()) if present.any() else float("nan"),
+        "classes": int(present.sum()),
+        "pixels": int(total),
+    }
+
+
+# ---- training and inference --------------------------------------------------------------------------------
+
+@torch.inference_mode()
+def predict(model: nn.Module, rgb, batch_size: int = 8) -> np.ndarray:
+    """uint8 images (N, H, W, 3) -> int16 (N, H, W) NYU40 ids 1..40, predicted at the model's resolution."""
+    was_training = model.training
+    model.eval()
+    x = to_batch(rgb)
+    h, w = model.input_size
+    out = []
+    for i in range(0, len(x), batch_size):
+        xb = normalise(x[i : i + batch_size])
+        if xb.shape[-2:] != (h, w):
+            xb = F.interpolate(xb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+        cls = model(xb)["out"].argmax(1, keepdim=True).float()
+        if cls.shape[-2:] != x.shape[-2:]:
+            cls = F.interpolate(cls, size=tuple(x.shape[-2:]), mode="nearest")
+        out.append(cls[:, 0].to(torch.int16) + 1)
+    model.train(was_training)
+    return torch.cat(out).numpy()
+
+
+def evaluate_cached(model: nn.Module, x: torch.Tensor, y: torch.Tensor, batch_size: int = 16) -> dict:
+    """Scores on cached tensors (images at the model's resolution)."""
+    pred = predict(model, x.permute(0, 2, 3, 1).numpy(), batch_size=batch_size)
+    gt = np.where(y.numpy() == IGNORE, -1, y.numpy().astype(np.int16) + 1)
+    return scores(confusion(gt, pred))
+
+
+def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
+          max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None):
+    """Train DeepLabV3 with cross-entropy; keep the epoch with the best validation mIoU.
+
+    Returns (model, history) where history = {"epochs": [{"epoch", "train_loss", "val_pixel_accuracy",
+    "val_miou", "seconds"}], "best_epoch", "train_seconds", ...}. `max_steps` stops early (tests).
+    """
+    from tqdm.auto import tqdm
+
+    gen = set_seed(seed)
+    model = build_model(spec)
+    h, w = spec.train_height, spec.train_width
+    t0 = time.perf_counter()
+    x, y = load_cache(train_frames, h, w, progress)
+    xv, yv = load_cache(val_frames, h, w, progress) if val_frames else (None, None)
+    read_s = time.perf_counter() - t0
+    opt = torch.optim.AdamW(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
+    steps_per_epoch = max(1, int(np.ceil(len(x) / spec.batch_size)))
+    total = spec.epochs * steps_per_epoch
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.15)
+    loss_fn = nn.CrossEntropyLoss(ignore_index=IGNORE)
+    history = {"epochs": [], "read_seconds": read_s, "train_frames": len(x), "val_frames": 0 if xv is None else len(xv)}
+    best, best_state, step = -1.0, None, 0
+    t_train = time.perf_counter()
+    for epoch in range(spec.epochs):
+        te = time.perf_counter()
+        model.train()
+        order = torch.randperm(len(x), generator=gen)
+        losses = []
+        bar = tqdm(range(steps_per_epoch), desc=f"{spec.name} epoch {epoch + 1}/{spec.epochs}", disable=not progress, leave=False)
+        for b in bar:
+            idx = order[b * spec.batch_size : (b + 1) * spec.batch_size]
+            if len(idx) < 2:  # BatchNorm needs two samples
+                continue
+            xb, yb = augment(x[idx], y[idx], gen)
+            logits = model(normalise(xb))["out"]
+            loss = loss_fn(logits, yb)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if step < total:
+                sched.step()
+            step += 1
+            losses.append(float(loss))
+            bar.set_postfix(loss=f"{losses[-1]:.3f}")
+            if step_callback:
+                step_callback(step, losses[-1])
+            if max_steps and step >= max_steps:
+                break
+        rec = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)) if losses else float("nan")}
+        if xv is not None:
+            sc = evaluate_cached(model, xv, yv)
+            rec.update(val_pixel_accuracy=sc["pixel_accuracy"], val_miou=sc["miou"])
+            metric = sc["miou"] if np.isfinite(sc["miou"]) else -rec["train_loss"]
+        else:
+            metric = -rec["train_loss"]
+        rec["seconds"] = time.perf_counter() - te
+        history["epochs"].append(rec)
+        log.info("%s epoch %d: %s", spec.name, epoch + 1, rec)
+        if metric > best or best_state is None:
+            best, best_state, history["best_epoch"] = metric, copy.deepcopy(model.state_dict()), epoch + 1
+        if max_steps and step >= max_steps:
+            break
+    history["train_seconds"] = time.perf_counter() - t_train
+    model.load_state_dict(best_state)
+    model.eval()
+    return model, history
+
+
+def load_model(spec, path) -> nn.Module:
+    """A model saved by `save_model` (or a bare state dict given as `checkpoint:`)."""
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if isinstance(state, dict) and "state_dict" in state:
+        state = state["state_dict"]
+    spec_nopre = copy.copy(spec)
+    spec_nopre.pretrained = False  # the file holds every weight: never fetch pretrained ones
+    model = build_model(spec_nopre)
+    model.load_state_dict(state, strict=True)
+    model.eval()
+    return model
+
+
+def save_model(model: nn.Module, path) -> None:
+    from monolib.io import atomic_path
+
+    with atomic_path(path) as tmp:
+        torch.save({"state_dict": model.state_dict()}, tmp)

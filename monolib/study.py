@@ -1,0 +1,170 @@
+"""The study runner: dataset -> perception -> graphs -> the papermill grid of cells -> the report notebook.
+
+Every stage is cached by the parameters it depends on and skipped when its files exist, so a killed run is
+resumed by running the same command again, and changing a GCN setting redoes only the cells.
+"""
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm.auto import tqdm
+
+from monolib import methods, paths
+from monolib.params import Study, StudyError
+
+log = logging.getLogger(__name__)
+CELL_NOTEBOOK = paths.NOTEBOOKS / "ablation_cell.ipynb"
+REPORT_NOTEBOOK = paths.NOTEBOOKS / "report.ipynb"
+
+
+@dataclass(frozen=True)
+class CellSpec:
+    method: str
+    scenario: str
+    threshold: float
+    seed: int
+
+    @property
+    def name(self) -> str:
+        return f"{self.method}/{self.scenario}__t{paths.threshold_tag(self.threshold)}__s{self.seed}"
+
+
+def grid(study: Study) -> list[CellSpec]:
+    """Every cell of the study: graph methods x scenarios x thresholds x seeds, image methods x seeds."""
+    cells = []
+    for m in study.methods:
+        if methods.kind(m) == "graph":
+            cells += [CellSpec(m, sc, t, s) for sc in study.scenarios for t in study.thresholds for s in study.seeds]
+        else:
+            cells += [CellSpec(m, "rgb", math.inf, s) for s in study.seeds]
+    return cells
+
+
+def check_notebook_parameters(notebook: Path, names: set[str]) -> None:
+    """Fail before any work when the grid sets a parameter the notebook does not declare."""
+    import papermill
+
+    declared = set(papermill.inspect_notebook(str(notebook)))
+    missing = sorted(names - declared)
+    if missing:
+        raise StudyError(f"{notebook}: no parameter named {', '.join(missing)} (declared: {', '.join(sorted(declared))})")
+
+
+def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retries: int = 1) -> Path:
+    """Run a notebook with papermill in its own kernel (explicit kernel, cwd and timeout); one retry for the
+    kernel-port collisions that parallel kernels can hit."""
+    import papermill
+
+    output.parent.mkdir(parents=True, exist_ok=True)
+    for attempt in range(retries + 1):
+        try:
+            papermill.execute_notebook(str(notebook), str(output), parameters=parameters, kernel_name="python3",
+                                       cwd=str(notebook.parent), execution_timeout=timeout, progress_bar=False,
+                                       log_output=False)
+            return output
+        except papermill.PapermillExecutionError:
+            raise
+        except Exception as exc:  # kernel start-up failures (ZMQError, timeouts)
+            if attempt == retries:
+                raise
+            log.warning("%s: kernel failed to start (%s); retrying", notebook.name, exc)
+            time.sleep(2)
+    return output
+
+
+def _run_cell_notebook(study_file: str, study_name: str, cell: CellSpec, timeout: int) -> tuple[str, float]:
+    t0 = time.perf_counter()
+    out = paths.study_dir(study_name) / "notebooks" / "cells" / f"{cell.name.replace('/', '__')}.ipynb"
+    execute(CELL_NOTEBOOK, out, {"study": study_file, "method": cell.method, "scenario": cell.scenario,
+                                  "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""}, timeout)
+    return cell.name, time.perf_counter() - t0
+
+
+def run_grid(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
+    """Run every cell that has no results yet through papermill, in `jobs` parallel worker processes."""
+    from monolib.cell import is_complete
+
+    cells = grid(study)
+    todo = [c for c in cells if not is_complete(paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed))]
+    log.info("grid: %d cells, %d done, %d to run", len(cells), len(cells) - len(todo), len(todo))
+    print(f"grid: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run", flush=True)
+    jobs = jobs or study.jobs
+    failed = []
+    t0 = time.perf_counter()
+    if todo:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            futures = {pool.submit(_run_cell_notebook, study.path, study.name, c, study.cell_timeout): c for c in todo}
+            bar = tqdm(total=len(todo), desc="cells", disable=not progress)
+            for fut in as_completed(futures):
+                try:
+                    fut.result()
+                except Exception as exc:
+                    failed.append((futures[fut].name, exc))
+                    log.error("cell %s failed: %s", futures[fut].name, exc)
+                bar.update(1)
+            bar.close()
+    if failed:
+        names = ", ".join(n for n, _ in failed)
+        raise RuntimeError(f"{len(failed)} cells failed ({names}); their notebooks are under "
+                           f"{paths.study_dir(study.name) / 'notebooks' / 'cells'}; re-run to retry only these")
+    return {"cells": len(cells), "ran": len(todo), "seconds": time.perf_counter() - t0}
+
+
+def needs_perception(study: Study) -> bool:
+    return not study.graphs_root and any(
+        sc.depth != "gt" or sc.semantic != "gt" for sc in study.scenarios.values()
+    ) and any(methods.kind(m) == "graph" for m in study.methods)
+
+
+def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
+    """All stages of a study, each skipped when its results exist. Returns timings per stage."""
+    from monolib import dataset, scenegraphs
+
+    check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})
+    check_notebook_parameters(REPORT_NOTEBOOK, {"study"})
+    times = {}
+    t = time.perf_counter()
+    if not study.graphs_root:
+        print(f"[1/5] dataset: {study.dataset_root}", flush=True)
+        dataset.ensure_dataset(study, progress=progress)
+    else:
+        print(f"[1/5] dataset: published graphs in {study.graphs_root}", flush=True)
+    times["dataset_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    if needs_perception(study):
+        from monolib import perception
+
+        print("[2/5] perception", flush=True)
+        perception.run(study, progress=progress)
+    else:
+        print("[2/5] perception: not needed (ground-truth scenarios only)", flush=True)
+    times["perception_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    if any(methods.kind(m) == "graph" for m in study.methods):
+        print(f"[3/5] graphs: {len(study.scenarios)} scenarios", flush=True)
+        for sc in study.scenarios:
+            scenegraphs.build(study, sc, progress=progress)
+    times["graphs_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    print("[4/5] cells", flush=True)
+    run_grid(study, jobs, progress)
+    times["cells_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    print("[5/5] report", flush=True)
+    execute(REPORT_NOTEBOOK, study.dir / "notebooks" / "report.ipynb", {"study": study.path}, study.cell_timeout)
+    times["report_s"] = time.perf_counter() - t
+    out = paths.figures_dir(study.name)
+    print(f"done: tables and figures in {out} (table1_recall.md, table2_precision.md, results.csv); "
+          f"executed notebooks in {study.dir / 'notebooks'}", flush=True)
+    return times

@@ -1,0 +1,1494 @@
+"""The procedural mini-Hypersim: furnished rooms, ray cast with embree, written in Hypersim's exact layout.
+
+Words (design.md): a *setting* is one room configuration (folder ``ai_VVV_NNN``), a *scene* one camera trajectory
+(``cam_XX``), a *frame* one image of it. A *family* is one volume ``ai_9FF``: its settings share the room type, the
+furniture catalogue (object types and their dimensions) and the materials, and differ in layout, doors and windows,
+lighting and viewpoints -- the paper's "two neighbouring offices". Volumes start at 900 so a synthetic setting can
+never be confused with a real Hypersim scene.
+
+Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to
+the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim
+(../shared/docs/hypersim-format.md sections 1, 1a, 1b, 2, 3, 6, 7).
+
+Public API: `render_dataset(study, out_dir)` and `benchmark()`.
+"""
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import math
+import multiprocessing as mp
+import os
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from monolib.hypersim import Camera, tonemap
+from monolib.io import atomic_path, write_h5, write_json, write_text
+from monolib.labels import ID
+
+VOLUME0 = 900
+FORMAT_VERSION = 3  # bump when the generator changes: finished settings with another version are re-rendered
+FOV_X = math.pi / 3
+H5_COMPRESSION = 9
+
+# ai_037_002's tilt-shift camera (metadata_camera_parameters.csv of ml-hypersim)
+TILT_SHIFT_M = ((0.579607251426182, 0.0, -0.06955286861651404),
+                (0.0, 0.4346865334657201, 0.09273312506660672),
+                (-0.0, 0.004054126980668954, -1.003909173803896))
+TILT_SHIFT_PROJ = (1.7253062268275619, 0.001113868662274642, -0.11942983282195321, 0.0,
+                   0.0, 2.2985281393428907, 0.21231970279458348, 0.0,
+                   0.0, 0.009300822120943601, -0.9972411188430887, -2.002002002002002,
+                   0.0, 0.009282239059762895, -0.9952486290951505, 0.0)
+
+# Hypersim's metadata_camera_parameters.csv columns (contrib/mikeroberts3000), names only
+CAMERA_COLUMNS = (
+    "scene_name,settings_output_img_height,settings_output_img_width,settings_units_info_meters_scale,"
+    "use_camera_physical,camera_physical_anisotropy,camera_physical_blades_enable,camera_physical_blades_num,"
+    "camera_physical_blades_rotation,camera_physical_bmpaperture_affects_exposure,camera_physical_bmpaperture_enable,"
+    "camera_physical_bmpaperture_resolution,camera_physical_bmpaperture_tex,camera_physical_center_bias,"
+    "camera_physical_distortion,camera_physical_distortion_tex,camera_physical_distortion_type,"
+    "camera_physical_dof_display_threshold,camera_physical_dont_affect_settings,"
+    "camera_physical_enable_thin_lens_equation,camera_physical_exposure,camera_physical_f_number,"
+    "camera_physical_film_width,camera_physical_focal_length,camera_physical_focus_distance,camera_physical_fov,"
+    "camera_physical_horizontal_offset,camera_physical_horizontal_shift,camera_physical_ISO,camera_physical_latency,"
+    "camera_physical_lens_file,camera_physical_lens_shift,camera_physical_optical_vignetting,"
+    "camera_physical_rolling_shutter_duration,camera_physical_rolling_shutter_mode,camera_physical_shutter_angle,"
+    "camera_physical_shutter_offset,camera_physical_shutter_speed,camera_physical_specify_focus,"
+    "camera_physical_specify_fov,camera_physical_subdivs,camera_physical_target_distance,camera_physical_targeted,"
+    "camera_physical_type,camera_physical_use_dof,camera_physical_use_moblur,camera_physical_vertical_offset,"
+    "camera_physical_vignetting,camera_physical_white_balance,camera_physical_zoom_factor,"
+    "settings_camera_auto_corrections_mode,settings_camera_auto_exposure,settings_camera_auto_exposure_compensation,"
+    "settings_camera_auto_fit,settings_camera_auto_white_balance,settings_camera_curve,settings_camera_dist,"
+    "settings_camera_dont_affect_settings,settings_camera_fov,settings_camera_height,settings_camera_image_planes,"
+    "settings_camera_type,M_cam_from_uv_00,M_cam_from_uv_01,M_cam_from_uv_02,M_cam_from_uv_10,M_cam_from_uv_11,"
+    "M_cam_from_uv_12,M_cam_from_uv_20,M_cam_from_uv_21,M_cam_from_uv_22,M_proj_00,M_proj_01,M_proj_02,M_proj_03,"
+    "M_proj_10,M_proj_11,M_proj_12,M_proj_13,M_proj_20,M_proj_21,M_proj_22,M_proj_23,M_proj_30,M_proj_31,M_proj_32,"
+    "M_proj_33"
+).split(",")
+SPLIT_COLUMNS = ["scene_name", "camera_name", "frame_id", "included_in_public_release", "exclude_reason",
+                 "split_partition_name"]
+TRAJECTORY_COLUMNS = ["Animation", "Rendering job (geometry)", "Instance type (geometry)", "Rendering job (pre)",
+                      "Instance type (pre)", "Rendering job (final)", "Instance type (final)", "Scene type", "Notes",
+                      "Any good views of scene?"]
+
+ROOM_TYPES = ["office", "bedroom", "living room", "kitchen", "bathroom", "classroom", "dining room", "library"]
+SCENE_TYPE_LABEL = {"office": "Office", "bedroom": "Bedroom", "living room": "Living room", "kitchen": "Kitchen",
+                    "bathroom": "Bathroom", "classroom": "Classroom", "dining room": "Dining room",
+                    "library": "Library"}
+
+
+# =============================================================================================================
+# materials
+# =============================================================================================================
+
+PAINT, WOOD, FABRIC, TILES, PICTURE, BOOKS, PLAIN, STONE, GLASS, RUG = range(10)
+
+
+@dataclass
+class Material:
+    kind: int
+    base: tuple
+    alt: tuple = (0.0, 0.0, 0.0)
+    scale: float = 1.0
+    seed: float = 0.0
+    emission: tuple = (0.0, 0.0, 0.0)
+
+
+def _hsv(h: float, s: float, v: float) -> tuple:
+    import colorsys
+
+    return tuple(float(c) ** 2.2 for c in colorsys.hsv_to_rgb(h % 1.0, s, v))  # sRGB-ish -> linear albedo
+
+
+def _palette(seed: int) -> dict[str, list[Material]]:
+    """The study's global palette: a few paints, woods, fabrics... that every family draws from.
+
+    Families share materials across room types (so colour alone tells little about the place), and the members of
+    a family share them exactly.
+    """
+    rng = np.random.default_rng([seed, 6007])
+    u = rng.uniform
+    P: dict[str, list[Material]] = {}
+    P["paint"] = [Material(PAINT, _hsv(h, u(0.08, 0.3), u(0.7, 0.92)), seed=u(0, 100))
+                  for h in (0.08, 0.13, 0.3, 0.55, 0.62, 0.95)] + [Material(PAINT, _hsv(0.1, 0.03, 0.9), seed=1.0)]
+    P["wood"] = [Material(WOOD, _hsv(u(0.05, 0.1), u(0.35, 0.7), v), _hsv(u(0.04, 0.09), u(0.5, 0.8), v * 0.55),
+                          u(50, 110), u(0, 100)) for v in (0.35, 0.5, 0.65, 0.8)]
+    P["floorwood"] = [Material(WOOD, _hsv(u(0.05, 0.1), u(0.35, 0.65), v), _hsv(u(0.04, 0.09), u(0.5, 0.8), v * 0.5),
+                               u(40, 90), u(0, 100)) for v in (0.4, 0.6, 0.75)]
+    P["tiles"] = [Material(TILES, _hsv(h, sat, v), _hsv(h, 0.05, 0.45), sc, u(0, 100))
+                  for h, sat, v, sc in ((0.6, 0.05, 0.85, 0.3), (0.1, 0.15, 0.75, 0.45), (0.55, 0.2, 0.7, 0.25))]
+    P["rug"] = [Material(RUG, _hsv(h, 0.3, 0.5), _hsv(h + 0.1, 0.3, 0.7), u(200, 400), u(0, 100))
+                for h in (0.0, 0.6, 0.1)]
+    P["fabric"] = [Material(FABRIC, _hsv(h, sat, v), scale=u(150, 320), seed=u(0, 100))
+                   for h, sat, v in ((0.0, 0.5, 0.5), (0.6, 0.45, 0.45), (0.3, 0.35, 0.45), (0.1, 0.25, 0.7),
+                                     (0.0, 0.0, 0.35), (0.75, 0.3, 0.4))]
+    P["colour"] = [Material(PAINT, _hsv(h, sat, v), seed=u(0, 100))
+                   for h, sat, v in ((0.0, 0.0, 0.92), (0.0, 0.0, 0.25), (0.58, 0.3, 0.6), (0.08, 0.4, 0.75),
+                                     (0.35, 0.3, 0.55))]
+    P["metal"] = [Material(PLAIN, _hsv(0.6, 0.03, v)) for v in (0.2, 0.45, 0.7)]
+    P["stone"] = [Material(STONE, _hsv(h, 0.08, v), _hsv(h, 0.1, v * 0.7), u(60, 120), u(0, 100))
+                  for h, v in ((0.1, 0.85), (0.6, 0.4), (0.08, 0.6))]
+    P["curtain"] = [Material(FABRIC, _hsv(h, sat, v), scale=u(15, 30), seed=u(0, 100))
+                    for h, sat, v in ((0.1, 0.2, 0.85), (0.6, 0.35, 0.5), (0.0, 0.4, 0.5))]
+    P["picture"] = [Material(PICTURE, _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)), _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)),
+                             u(2, 7), u(0, 100)) for _ in range(8)]
+    return P
+
+
+def _family_materials(rng: np.random.Generator, room: str, P: dict) -> dict[str, Material]:
+    """One family's materials, drawn from the global palette P: every setting of the family uses exactly these."""
+    u = rng.uniform
+    pick = lambda key: P[key][int(rng.integers(len(P[key])))]
+    m: dict[str, Material] = {}
+    m["wall"] = pick("paint")
+    m["wall2"] = pick("paint")  # accent wall (same for every member)
+    m["ceiling"] = Material(PAINT, _hsv(0.1, 0.03, 0.93), seed=3.0)
+    if room in ("kitchen", "bathroom"):
+        m["floor"] = pick("tiles")
+    elif room in ("bedroom", "office", "classroom", "library") and u() < 0.4:
+        m["floor"] = pick("rug")
+    else:
+        m["floor"] = pick("floorwood")
+    m["door"] = pick("wood") if u() < 0.6 else pick("colour")
+    m["frame"] = Material(PAINT, _hsv(0.1, 0.03, 0.9), seed=2.0)
+    m["glass"] = Material(GLASS, (0.05, 0.05, 0.05), emission=(1.0, 1.1, 1.3))
+    m["wood"] = pick("wood")
+    m["wood2"] = pick("wood") if u() < 0.5 else pick("colour")
+    m["fabric"] = pick("fabric")
+    m["fabric2"] = pick("fabric")
+    m["pillow"] = pick("fabric") if u() < 0.5 else Material(FABRIC, _hsv(0.1, 0.05, 0.9), scale=250, seed=5.0)
+    m["metal"] = pick("metal")
+    m["white"] = Material(PLAIN, _hsv(0.6, 0.02, 0.92))
+    m["appliance"] = pick("colour") if u() < 0.3 else Material(PLAIN, _hsv(0.6, 0.02, 0.85))
+    m["screen"] = Material(PLAIN, (0.01, 0.01, 0.012))
+    m["books"] = Material(BOOKS, (0.5, 0.3, 0.2), scale=u(0.025, 0.045), seed=u(0, 100))
+    m["stone"] = pick("stone")
+    m["board"] = Material(PLAIN, (0.92, 0.93, 0.93))
+    m["mat"] = pick("rug")
+    m["cardboard"] = Material(PLAIN, _hsv(0.085, 0.5, 0.65))
+    m["shade"] = Material(FABRIC, _hsv(0.12, 0.15, 0.9), scale=300, seed=u(0, 100), emission=(0.6, 0.5, 0.35))
+    m["towel"] = pick("fabric")
+    m["curtain"] = pick("curtain")
+    m["prop"] = pick("colour")
+    m["paper"] = Material(PLAIN, (0.85, 0.85, 0.82))
+    m["mirror"] = Material(PLAIN, (0.55, 0.6, 0.62), emission=(0.05, 0.05, 0.06))
+    for k in range(3):
+        m[f"picture{k}"] = pick("picture")
+    return m
+
+
+def _hash(*xs: np.ndarray, seed: float = 0.0) -> np.ndarray:
+    """A cheap deterministic hash of integer lattice coordinates -> [0, 1)."""
+    s = seed * 0.731 + 0.1
+    for i, x in enumerate(xs):
+        s = s + np.asarray(x, np.float64) * (12.9898 + 31.4159 * i)
+    return np.mod(np.sin(s) * 43758.5453, 1.0)
+
+
+def _wave_noise(p: np.ndarray, seed: float, freq: float) -> np.ndarray:
+    """Smooth noise in [-1, 1] from three seeded plane waves (vectorised)."""
+    out = np.zeros(len(p))
+    r = np.random.default_rng(int(seed * 1000) % (2 ** 31))
+    for k in range(3):
+        d = r.normal(size=3)
+        d /= np.linalg.norm(d)
+        out += np.sin(p @ d * freq * (1.0 + 0.7 * k) + r.uniform(0, 6.28))
+    return out / 3.0
+
+
+def _albedo(mat: Material, p: np.ndarray) -> np.ndarray:
+    """(n, 3) albedo of material `mat` at local points p (n, 3) in metres."""
+    base = np.asarray(mat.base)
+    alt = np.asarray(mat.alt)
+    n = len(p)
+    if mat.kind == PAINT:
+        return base * (1.0 + 0.04 * _wave_noise(p, mat.seed, 3.0))[:, None]
+    if mat.kind == WOOD:
+        t = (p[:, 1] * 0.7 + p[:, 2]) * mat.scale + 2.5 * _wave_noise(p, mat.seed, 2.0) + 4 * np.sin(p[:, 0] * 1.3)
+        g = (0.5 + 0.5 * np.sin(t)) ** 3
+        plank = _hash(np.floor(p[:, 1] / 0.18), seed=mat.seed)[:, None] * 0.2 + 0.9
+        return (base * (1 - g[:, None]) + alt * g[:, None]) * plank
+    if mat.kind == FABRIC:
+        w = np.sin(p[:, 0] * mat.scale) * np.sin((p[:, 1] + p[:, 2]) * mat.scale)
+        return base * (0.9 + 0.06 * w + 0.06 * _wave_noise(p, mat.seed, 6.0))[:, None]
+    if mat.kind == TILES:
+        s = mat.scale
+        fx, fy = np.mod(p[:, 0] / s, 1.0), np.mod(p[:, 1] / s, 1.0)
+        grout = (np.minimum(fx, fy) < 0.035)[:, None]
+        var = 0.92 + 0.16 * _hash(np.floor(p[:, 0] / s), np.floor(p[:, 1] / s), seed=mat.seed)[:, None]
+        return np.where(grout, alt, base * var)
+    if mat.kind == PICTURE:
+        cu, cv = np.floor(p[:, 0] * mat.scale), np.floor(p[:, 2] * mat.scale * 0.8)
+        h = _hash(cu, cv, seed=mat.seed)[:, None]
+        h2 = _hash(cu + 7, cv - 3, seed=mat.seed)[:, None]
+        wave = (0.5 + 0.5 * np.sin(p[:, 0] * 9 + p[:, 2] * 5 + mat.seed))[:, None]
+        col = base * h + alt * (1 - h)
+        return np.clip(col * (0.5 + 0.6 * wave) + 0.25 * h2 * (1 - base), 0.0, 1.0)
+    if mat.kind == BOOKS:
+        k = np.floor(p[:, 0] / mat.scale)
+        h = np.stack([_hash(k, seed=mat.seed + j) for j in range(3)], 1)
+        return 0.05 + 0.55 * h ** 1.5
+    if mat.kind == STONE:
+        speck = _hash(np.floor(p[:, 0] * mat.scale), np.floor(p[:, 1] * mat.scale), np.floor(p[:, 2] * mat.scale),
+                      seed=mat.seed)[:, None]
+        return base * (0.85 + 0.3 * speck)
+    if mat.kind == RUG:
+        border = np.minimum(np.abs(np.mod(p[:, 0] * 2.0, 1.0) - 0.5), np.abs(np.mod(p[:, 1] * 2.0, 1.0) - 0.5))
+        stripe = (border > 0.42)[:, None]
+        w = np.sin(p[:, 0] * mat.scale) * np.sin(p[:, 1] * mat.scale)
+        return np.where(stripe, alt, base) * (0.9 + 0.08 * w)[:, None]
+    return np.broadcast_to(base, (n, 3)).astype(np.float64)
+
+
+# =============================================================================================================
+# geometry: parts, objects, the room
+# =============================================================================================================
+
+def _box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box (vertices (8,3), faces (12,3)) from corner lo to corner hi."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    v = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    f = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return v, f
+
+
+def _bx(cx, cy, z0, sx, sy, sz):
+    """Box centred at (cx, cy) in x/y, from height z0 up by sz."""
+    return _box((cx - sx / 2, cy - sy / 2, z0), (cx + sx / 2, cy + sy / 2, z0 + sz))
+
+
+def _cyl(cx, cy, z0, r, h, sections=14):
+    a = np.linspace(0, 2 * np.pi, sections, endpoint=False)
+    ring = np.stack([cx + r * np.cos(a), cy + r * np.sin(a)], 1)
+    v = np.concatenate([np.c_[ring, np.full(sections, z0)], np.c_[ring, np.full(sections, z0 + h)],
+                        [[cx, cy, z0], [cx, cy, z0 + h]]])
+    f = []
+    for i in range(sections):
+        j = (i + 1) % sections
+        f += [[i, j, sections + j], [i, sections + j, sections + i],
+              [2 * sections, j, i], [2 * sections + 1, sections + i, sections + j]]
+    return v, np.array(f)
+
+
+@dataclass
+class Obj:
+    """One semantic instance: several mesh parts in the object's local frame (+y = front, z up)."""
+    sem: int
+    parts: list  # list of ((v, f), material key)
+
+
+@dataclass
+class Item:
+    """A placed piece of furniture: objects, footprint (w, d) and pose (x, y, yaw, z0) in the room."""
+    kind: str
+    objs: list
+    w: float
+    d: float
+    h: float
+    x: float = 0.0
+    y: float = 0.0
+    yaw: float = 0.0
+    z0: float = 0.0
+
+
+# ---- furniture builders: local frame, footprint centred at the origin, front towards +y ----------------------
+
+def _legs(w, d, h, t, inset=0.03):
+    return [_bx(sx * (w / 2 - inset - t / 2), sy * (d / 2 - inset - t / 2), 0, t, t, h) for sx in (-1, 1) for sy in (-1, 1)]
+
+
+def b_table(dim, mats, sem="table"):
+    w, d, h = dim
+    parts = [(_bx(0, 0, h - 0.04, w, d, 0.04), mats.get("top", "wood"))]
+    parts += [(leg, mats.get("legs", "wood")) for leg in _legs(w, d, h - 0.04, 0.05)]
+    return [Obj(ID[sem], parts)]
+
+
+def b_desk(dim, mats):
+    w, d, h = dim
+    parts = [(_bx(0, 0, h - 0.035, w, d, 0.035), "wood"),
+             (_bx(-w / 2 + 0.02, 0, 0, 0.03, d - 0.04, h - 0.035), "wood2"),
+             (_bx(w / 2 - 0.22, 0, 0.05, 0.4, d - 0.06, h - 0.09), "wood2"),
+             (_bx(0, -d / 2 + 0.03, 0.3, w - 0.1, 0.02, h - 0.34), "wood2")]
+    return [Obj(ID["desk"], parts)]
+
+
+def b_chair(dim, mats):
+    w, d, h = dim
+    seat = 0.45
+    parts = [(_bx(0, 0, seat - 0.05, w, d, 0.05), "fabric"),
+             (_bx(0, -d / 2 + 0.03, seat, w, 0.05, h - seat), "fabric")]
+    parts += [(leg, "metal") for leg in _legs(w, d, seat - 0.05, 0.035, 0.02)]
+    return [Obj(ID["chair"], parts)]
+
+
+def b_sofa(dim, mats):
+    w, d, h = dim
+    arm = 0.18
+    parts = [(_bx(0, 0.05, 0.08, w - 2 * arm, d - 0.2, 0.35), "fabric"),
+             (_bx(0, -d / 2 + 0.1, 0.08, w, 0.2, h - 0.08), "fabric"),
+             (_bx(-w / 2 + arm / 2, 0.05, 0.08, arm, d - 0.1, 0.55), "fabric"),
+             (_bx(w / 2 - arm / 2, 0.05, 0.08, arm, d - 0.1, 0.55), "fabric"),
+             (_bx(0, 0, 0, w - 0.1, d - 0.1, 0.08), "wood")]
+    objs = [Obj(ID["sofa"], parts)]
+    for sx in (-1, 1):
+        objs.append(Obj(ID["pillow"], [(_bx(sx * (w / 2 - arm - 0.3), -d / 2 + 0.3, 0.43, 0.42, 0.14, 0.38), "pillow")]))
+    return objs
+
+
+def b_bed(dim, mats):
+    w, d, h = dim
+    parts = [(_bx(0, 0, 0, w, d, 0.3), "wood"), (_bx(0, 0.02, 0.3, w - 0.06, d - 0.1, 0.22), "fabric"),
+             (_bx(0, -d / 2 + 0.04, 0, w, 0.08, h), "wood")]
+    objs = [Obj(ID["bed"], parts)]
+    n = 2 if w > 1.2 else 1
+    for k in range(n):
+        cx = (k - (n - 1) / 2) * (w / 2)
+        objs.append(Obj(ID["pillow"], [(_bx(cx, -d / 2 + 0.3, 0.52, min(0.6, w / n - 0.1), 0.35, 0.14), "pillow")]))
+    return objs
+
+
+def b_boxlike(sem, mat, handles=True):
+    def build(dim, mats):
+        w, d, h = dim
+        parts = [(_bx(0, 0, 0, w, d, h), mats.get("body", mat))]
+        if handles:
+            nd = max(1, int(h / 0.3))
+            for k in range(nd):
+                parts.append((_bx(0, d / 2 + 0.005, (k + 0.5) * h / nd - 0.01, min(0.2, w * 0.4), 0.012, 0.02), "metal"))
+        return [Obj(ID[sem], parts)]
+    return build
+
+
+def b_bookshelf(dim, mats, sem="bookshelf", books=True):
+    w, d, h = dim
+    t = 0.025
+    frame = [(_bx(-w / 2 + t / 2, 0, 0, t, d, h), "wood"), (_bx(w / 2 - t / 2, 0, 0, t, d, h), "wood"),
+             (_bx(0, -d / 2 + 0.005, 0, w, 0.01, h), "wood")]
+    nshelf = max(2, int(h / 0.38))
+    objs = []
+    for k in range(nshelf + 1):
+        z = k * (h - t) / nshelf
+        frame.append((_bx(0, 0, z, w - 2 * t, d, t), "wood"))
+        if books and k < nshelf:
+            bh = min(0.3, (h - t) / nshelf - 0.06)
+            bw = (w - 2 * t) * (0.5 + 0.45 * ((k * 7919) % 10) / 10)
+            objs.append(Obj(ID["books"], [(_bx(-w / 2 + t + bw / 2, 0.01, z + t, bw, d * 0.8, bh), "books")]))
+    return [Obj(ID[sem], frame)] + objs
+
+
+def b_counter(dim, mats):
+    w, d, h = dim
+    objs = [Obj(ID["cabinet"], [(_bx(0, -0.02, 0.08, w, d - 0.04, h - 0.12), "wood2"),
+                                (_bx(0, -0.05, 0, w - 0.04, d - 0.1, 0.08), "metal")]
+                + [(_bx(-w / 2 + (k + 0.5) * w / max(1, int(w / 0.5)), d / 2 - 0.03, h - 0.2, 0.12, 0.015, 0.02), "metal")
+                   for k in range(max(1, int(w / 0.5)))]),
+            Obj(ID["counter"], [(_bx(0, 0, h - 0.04, w + 0.02, d, 0.04), "stone")])]
+    return objs
+
+
+def b_kitchen_sink(dim, mats):
+    objs = b_counter(dim, mats)
+    w, d, h = dim
+    objs.append(Obj(ID["sink"], [(_bx(0, 0.02, h, 0.55, 0.42, 0.015), "metal"),
+                                 (_cyl(0, -d / 2 + 0.08, h, 0.02, 0.3), "metal")]))
+    return objs
+
+
+def b_vanity(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["cabinet"], [(_bx(0, 0, 0, w, d, h - 0.03), "wood2")]),
+            Obj(ID["sink"], [(_bx(0, 0, h - 0.03, w + 0.02, d + 0.02, 0.03), "white"),
+                             (_bx(0, 0.04, h, w * 0.6, d * 0.55, 0.08), "white"),
+                             (_cyl(0, -d / 2 + 0.06, h, 0.018, 0.22), "metal")])]
+
+
+def b_toilet(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["toilet"], [(_cyl(0, 0.06, 0, 0.16, 0.38), "white"), (_bx(0, 0.08, 0.38, w * 0.9, d * 0.6, 0.04), "white"),
+                               (_bx(0, -d / 2 + 0.1, 0.38, w, 0.2, 0.4), "white")])]
+
+
+def b_bathtub(dim, mats):
+    w, d, h = dim
+    t = 0.07
+    return [Obj(ID["bathtub"], [(_bx(0, 0, 0, w, d, h - 0.1), "white"),
+                                (_bx(0, -d / 2 + t / 2, h - 0.1, w, t, 0.1), "white"),
+                                (_bx(0, d / 2 - t / 2, h - 0.1, w, t, 0.1), "white"),
+                                (_bx(-w / 2 + t / 2, 0, h - 0.1, t, d, 0.1), "white"),
+                                (_bx(w / 2 - t / 2, 0, h - 0.1, t, d, 0.1), "white")])]
+
+
+def b_fridge(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["refrigerator"], [(_bx(0, 0, 0, w, d, h), "appliance"),
+                                     (_bx(w / 2 - 0.06, d / 2 + 0.01, h * 0.45, 0.03, 0.03, h * 0.35), "metal")])]
+
+
+def b_tvstand(dim, mats):
+    w, d, h = dim
+    tw = min(w * 0.9, 1.3)
+    return [Obj(ID["otherfurniture"], [(_bx(0, 0, 0, w, d, h), "wood2")]),
+            Obj(ID["television"], [(_bx(0, -0.02, h + 0.08, tw, 0.05, tw * 0.58), "screen"),
+                                   (_bx(0, -0.02, h, 0.25, 0.15, 0.08), "metal")])]
+
+
+def b_nightstand(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["nightstand"], [(_bx(0, 0, 0, w, d, h), "wood"),
+                                   (_bx(0, d / 2 + 0.005, h * 0.6, 0.12, 0.01, 0.02), "metal")]),
+            Obj(ID["lamp"], [(_cyl(0, 0, h, 0.07, 0.03), "metal"), (_cyl(0, 0, h + 0.03, 0.015, 0.25), "metal"),
+                             (_cyl(0, 0, h + 0.22, 0.15, 0.2), "shade")])]
+
+
+def b_floorlamp(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["lamp"], [(_cyl(0, 0, 0, 0.15, 0.03), "metal"), (_cyl(0, 0, 0.03, 0.015, h - 0.3), "metal"),
+                             (_cyl(0, 0, h - 0.35, 0.2, 0.35), "shade")])]
+
+
+def b_dresser(dim, mats):
+    objs = b_boxlike("dresser", "wood")(dim, mats)
+    w, d, h = dim
+    objs.append(Obj(ID["otherprop"], [(_cyl(w / 4, 0, h, 0.06, 0.25), "prop")]))
+    return objs
+
+
+def b_shelves(dim, mats):
+    w, d, h = dim
+    objs = [Obj(ID["shelves"], [(_bx(0, 0, z, w, d, 0.025) if True else None, "wood")
+                                for z in np.linspace(0, h, 3)])]
+    objs.append(Obj(ID["box"], [(_bx(-w / 4, 0, h / 2 + 0.025, 0.3, d * 0.8, min(0.25, h / 2 - 0.05)), "cardboard")]))
+    objs.append(Obj(ID["otherprop"], [(_cyl(w / 4, 0, 0.025, 0.05, 0.18), "prop")]))
+    objs.append(Obj(ID["books"], [(_bx(w / 4, 0, h + 0.025, 0.3, d * 0.8, 0.22), "books")]))
+    return objs
+
+
+def b_boxes(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["box"], [(_bx(0, 0, 0, w, d, h), "cardboard")]),
+            Obj(ID["box"], [(_bx(0.03, -0.02, h, w * 0.7, d * 0.7, h * 0.6), "cardboard")])]
+
+
+def b_floormat(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["floormat"], [(_bx(0, 0, 0, w, d, 0.012), "mat")])]
+
+
+def b_coffee_table(dim, mats):
+    objs = b_table(dim, {})
+    w, d, h = dim
+    objs.append(Obj(ID["otherprop"], [(_cyl(w / 5, 0, h, 0.05, 0.22), "prop")]))
+    objs.append(Obj(ID["paper"], [(_bx(-w / 5, 0, h, 0.3, 0.22, 0.005), "paper")]))
+    return objs
+
+
+def b_work_desk(dim, mats):
+    objs = b_desk(dim, mats)
+    w, d, h = dim
+    objs.append(Obj(ID["paper"], [(_bx(-w / 5, 0.05, h, 0.3, 0.22, 0.004), "paper")]))
+    objs.append(Obj(ID["otherprop"], [(_bx(0, -d / 2 + 0.2, h, 0.5, 0.05, 0.32), "screen"),
+                                      (_bx(0, -d / 2 + 0.2, h, 0.1, 0.1, 0.06), "metal")]))
+    return objs
+
+
+# ---- wall-mounted things (local frame: x along the wall, +y out of the wall, z up from the mount height) ---------
+
+def w_picture(dim, mats, key="picture0"):
+    w, d, h = dim
+    return [Obj(ID["picture"], [(_bx(0, 0.015, 0, w + 0.06, 0.03, h + 0.06), "wood2"), (_bx(0, 0.035, 0.03, w, 0.01, h), key)])]
+
+
+def w_simple(sem, mat, thick=0.02):
+    def build(dim, mats):
+        w, d, h = dim
+        return [Obj(ID[sem], [(_bx(0, thick / 2, 0, w, thick, h), mat)])]
+    return build
+
+
+def w_whiteboard(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["whiteboard"], [(_bx(0, 0.015, 0, w, 0.03, h), "board"),
+                                   (_bx(0, 0.05, -0.03, w, 0.06, 0.03), "metal")])]
+
+
+def w_towel(dim, mats):
+    w, d, h = dim
+    return [Obj(ID["otherprop"], [(_cyl(-w / 2 - 0.05, 0.05, h, 0.012, 0.04), "metal")]),
+            Obj(ID["towel"], [(_bx(0, 0.05, 0, w, 0.03, h), "towel")])]
+
+
+# kind -> (builder, placement, dims (lo, hi) w/d/h, mount height for wall things)
+CATALOGUE = {
+    "table": (b_table, "centre", ((1.0, 0.7, 0.72), (1.8, 1.0, 0.78))),
+    "dining_table": (b_table, "centre", ((1.2, 0.8, 0.72), (2.0, 1.0, 0.78))),
+    "coffee_table": (b_coffee_table, "centre", ((0.8, 0.5, 0.38), (1.2, 0.7, 0.48))),
+    "desk": (b_work_desk, "wall", ((1.1, 0.6, 0.72), (1.6, 0.8, 0.76))),
+    "student_desk": (b_desk, "grid", ((0.9, 0.5, 0.7), (1.2, 0.6, 0.74))),
+    "chair": (b_chair, "near", ((0.42, 0.42, 0.85), (0.5, 0.5, 1.0))),
+    "sofa": (b_sofa, "wall", ((1.6, 0.85, 0.8), (2.4, 1.0, 0.95))),
+    "armchair": (b_sofa, "free", ((0.8, 0.8, 0.8), (1.0, 0.9, 0.95))),
+    "bed": (b_bed, "wall", ((1.0, 1.95, 0.9), (1.8, 2.1, 1.2))),
+    "nightstand": (b_nightstand, "wall", ((0.4, 0.35, 0.45), (0.55, 0.45, 0.6))),
+    "dresser": (b_dresser, "wall", ((0.8, 0.45, 0.8), (1.4, 0.55, 1.1))),
+    "cabinet": (b_boxlike("cabinet", "wood2"), "wall", ((0.6, 0.4, 0.8), (1.2, 0.5, 1.9))),
+    "wardrobe": (b_boxlike("cabinet", "wood"), "wall", ((1.0, 0.55, 1.9), (1.6, 0.6, 2.2))),
+    "bookshelf": (b_bookshelf, "wall", ((0.8, 0.3, 1.5), (1.2, 0.38, 2.1))),
+    "shelves": (b_shelves, "wall_high", ((0.8, 0.25, 0.45), (1.2, 0.3, 0.6))),
+    "counter": (b_counter, "wall", ((1.2, 0.6, 0.9), (2.4, 0.65, 0.92))),
+    "kitchen_sink": (b_kitchen_sink, "wall", ((1.0, 0.6, 0.9), (1.4, 0.65, 0.92))),
+    "fridge": (b_fridge, "wall", ((0.6, 0.65, 1.7), (0.8, 0.7, 1.95))),
+    "upper_cabinet": (b_boxlike("cabinet", "wood2", False), "wall_high", ((1.0, 0.35, 0.6), (1.8, 0.38, 0.75))),
+    "tvstand": (b_tvstand, "wall", ((1.2, 0.4, 0.45), (1.8, 0.5, 0.6))),
+    "floorlamp": (b_floorlamp, "corner", ((0.4, 0.4, 1.5), (0.45, 0.45, 1.8))),
+    "boxes": (b_boxes, "wall", ((0.35, 0.3, 0.25), (0.6, 0.45, 0.45))),
+    "floormat": (b_floormat, "floor", ((1.2, 0.8, 0.0), (2.4, 1.7, 0.0))),
+    "toilet": (b_toilet, "wall", ((0.38, 0.65, 0.78), (0.42, 0.72, 0.82))),
+    "bathtub": (b_bathtub, "wall", ((1.5, 0.7, 0.55), (1.8, 0.8, 0.6))),
+    "vanity": (b_vanity, "wall", ((0.6, 0.45, 0.85), (1.2, 0.55, 0.9))),
+    "otherfurniture": (b_boxlike("otherfurniture", "wood2"), "wall", ((0.5, 0.4, 0.5), (1.0, 0.5, 0.9))),
+    # wall-mounted: placement "mount", dims w, depth, h; mount height in CATALOGUE_MOUNT
+    "picture": (w_picture, "mount", ((0.4, 0.03, 0.3), (1.2, 0.03, 0.8))),
+    "whiteboard": (w_whiteboard, "mount", ((1.6, 0.03, 0.9), (3.0, 0.03, 1.2))),
+    "mirror": (w_simple("mirror", "mirror"), "mount", ((0.5, 0.02, 0.6), (0.9, 0.02, 1.0))),
+    "towel": (w_towel, "mount", ((0.35, 0.03, 0.5), (0.55, 0.03, 0.7))),
+    "wall_tv": (w_simple("television", "screen", 0.05), "mount", ((1.0, 0.05, 0.58), (1.4, 0.05, 0.8))),
+}
+MOUNT_Z = {"picture": (1.3, 1.6), "whiteboard": (0.9, 1.0), "mirror": (1.15, 1.3), "towel": (0.9, 1.1),
+           "wall_tv": (1.0, 1.3)}
+
+# room type -> [(kind, min count, max count, probability the family has it)]
+ROOMS = {
+    "office": [("desk", 1, 3, 1.0), ("chair", 0, 0, 1.0), ("bookshelf", 1, 2, 0.9), ("cabinet", 1, 2, 0.8),
+               ("whiteboard", 1, 1, 0.6), ("picture", 1, 2, 0.7), ("boxes", 1, 2, 0.6), ("floorlamp", 1, 1, 0.4),
+               ("shelves", 1, 1, 0.5), ("table", 1, 1, 0.4), ("otherfurniture", 1, 1, 0.4), ("floormat", 1, 1, 0.3)],
+    "bedroom": [("bed", 1, 1, 1.0), ("nightstand", 1, 2, 1.0), ("dresser", 1, 1, 0.8), ("wardrobe", 1, 1, 0.6),
+                ("picture", 1, 3, 0.9), ("floormat", 1, 1, 0.6), ("mirror", 1, 1, 0.5), ("desk", 1, 1, 0.3),
+                ("chair", 0, 0, 1.0), ("boxes", 1, 1, 0.3), ("floorlamp", 1, 1, 0.3), ("shelves", 1, 1, 0.4)],
+    "living room": [("sofa", 1, 1, 1.0), ("coffee_table", 1, 1, 0.9), ("tvstand", 1, 1, 0.8), ("armchair", 1, 2, 0.6),
+                    ("bookshelf", 1, 1, 0.6), ("picture", 1, 3, 0.9), ("floormat", 1, 1, 0.8), ("floorlamp", 1, 2, 0.8),
+                    ("cabinet", 1, 1, 0.4), ("shelves", 1, 1, 0.4), ("otherfurniture", 1, 1, 0.4)],
+    "kitchen": [("counter", 1, 2, 1.0), ("kitchen_sink", 1, 1, 1.0), ("fridge", 1, 1, 1.0), ("upper_cabinet", 1, 2, 0.8),
+                ("table", 1, 1, 0.6), ("chair", 0, 0, 1.0), ("picture", 1, 1, 0.4), ("boxes", 1, 1, 0.3),
+                ("shelves", 1, 1, 0.4), ("cabinet", 1, 1, 0.5), ("floormat", 1, 1, 0.3)],
+    "bathroom": [("toilet", 1, 1, 1.0), ("vanity", 1, 1, 1.0), ("mirror", 1, 1, 1.0), ("bathtub", 1, 1, 0.7),
+                 ("towel", 1, 2, 0.9), ("floormat", 1, 1, 0.6), ("cabinet", 1, 1, 0.5), ("shelves", 1, 1, 0.5),
+                 ("picture", 1, 1, 0.3)],
+    "classroom": [("student_desk", 4, 9, 1.0), ("chair", 0, 0, 1.0), ("whiteboard", 1, 1, 1.0), ("desk", 1, 1, 1.0),
+                  ("bookshelf", 1, 2, 0.6), ("cabinet", 1, 2, 0.6), ("picture", 1, 2, 0.5), ("boxes", 1, 1, 0.4)],
+    "dining room": [("dining_table", 1, 1, 1.0), ("chair", 0, 0, 1.0), ("cabinet", 1, 2, 0.8), ("picture", 1, 3, 0.9),
+                    ("floorlamp", 1, 1, 0.5), ("otherfurniture", 1, 1, 0.5), ("floormat", 1, 1, 0.4),
+                    ("shelves", 1, 1, 0.4)],
+    "library": [("bookshelf", 3, 6, 1.0), ("table", 1, 2, 1.0), ("chair", 0, 0, 1.0), ("armchair", 1, 1, 0.5),
+                ("floorlamp", 1, 2, 0.6), ("picture", 1, 1, 0.5), ("floormat", 1, 1, 0.5), ("desk", 1, 1, 0.4)],
+}
+ROOM_SIZE = {"bathroom": ((2.6, 2.4), (4.0, 3.5)), "kitchen": ((3.2, 3.0), (5.5, 4.5)),
+             "classroom": ((5.5, 5.0), (8.0, 7.0)), "library": ((4.5, 4.0), (7.5, 6.5))}
+
+
+@dataclass
+class Family:
+    index: int
+    room: str
+    size: tuple  # W, D, H
+    materials: dict
+    items: list  # (kind, dims (w, d, h), extra dict)
+    wall_key: list  # wall material key per wall
+    temp: float = 0.5
+
+
+def make_family(seed: int, index: int, room: str) -> Family:
+    rng = np.random.default_rng([seed, 7919, index])
+    lo, hi = ROOM_SIZE.get(room, ((3.2, 3.0), (6.0, 5.0)))
+    W, D = rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1])
+    H = rng.uniform(2.5, 3.2)
+    mats = _family_materials(rng, room, _palette(seed))
+    temp = float(rng.uniform(0.2, 0.8))  # light colour temperature of the family's fixtures (0 warm .. 1 cool)
+    items = []
+    pic = 0
+    for kind, nmin, nmax, p in ROOMS[room]:
+        if kind == "chair" or rng.uniform() > p:
+            continue
+        n = int(rng.integers(nmin, nmax + 1))
+        lo_d, hi_d = CATALOGUE[kind][2]
+        dims = tuple(float(rng.uniform(a, b)) for a, b in zip(lo_d, hi_d))
+        for _ in range(n):
+            extra = {}
+            if kind == "picture":
+                extra["mat"] = f"picture{pic % 3}"
+                pic += 1
+                dims = tuple(float(rng.uniform(a, b)) for a, b in zip(lo_d, hi_d))
+            items.append((kind, dims, extra))
+    chair_dims = tuple(float(rng.uniform(a, b)) for a, b in zip(*CATALOGUE["chair"][2]))
+    items.append(("chair", chair_dims, {}))  # the family's chair model (the layout decides how many)
+    wall_key = ["wall"] * 4
+    if rng.uniform() < 0.5:
+        wall_key[int(rng.integers(4))] = "wall2"
+    return Family(index, room, (W, D, H), mats, items, wall_key, temp)
+
+
+# =============================================================================================================
+# layout of one setting
+# =============================================================================================================
+
+def _rot(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+@dataclass
+class Layout:
+    W: float
+    D: float
+    H: float
+    items: list  # Item
+    rects: list  # (xmin, ymin, xmax, ymax) floor footprints (obstacles)
+    lights: list  # (position (3,), rgb (3,))
+    ambient: np.ndarray
+    window_emission: np.ndarray
+    openings: list = field(default_factory=list)  # (wall, s0, s1, z0, z1, kind)
+
+
+def _wall_frame(w: int, W: float, D: float):
+    """(origin (x, y), direction along the wall, inward normal, length) of wall w (0: y=0, 1: x=W, 2: y=D, 3: x=0)."""
+    if w == 0:
+        return np.array([0.0, 0.0]), np.array([1.0, 0.0]), np.array([0.0, 1.0]), W
+    if w == 1:
+        return np.array([W, 0.0]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), D
+    if w == 2:
+        return np.array([W, D]), np.array([-1.0, 0.0]), np.array([0.0, -1.0]), W
+    return np.array([0.0, D]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), D
+
+
+def _footprint(x, y, yaw, w, d):
+    c, s = abs(math.cos(yaw)), abs(math.sin(yaw))
+    hx, hy = (w * c + d * s) / 2, (w * s + d * c) / 2
+    return (x - hx, y - hy, x + hx, y + hy)
+
+
+def _overlaps(r, rects, pad=0.05):
+    for q in rects:
+        if r[0] < q[2] + pad and q[0] < r[2] + pad and r[1] < q[3] + pad and q[1] < r[3] + pad:
+            return True
+    return False
+
+
+def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout:
+    rng = np.random.default_rng([seed, 104729, setting_index])
+    W, D, H = fam.size
+    W *= rng.uniform(0.93, 1.07)
+    D *= rng.uniform(0.93, 1.07)
+    items: list[Item] = []
+    rects: list = []
+    wall_used: dict[int, list] = {w: [] for w in range(4)}  # intervals along each wall taken by mounts/windows
+    openings = []
+
+    # doors and windows
+    n_doors = 1 + int(rng.uniform() < 0.25)
+    n_windows = int(rng.integers(0 if fam.room == "bathroom" else 1, 3 if min(W, D) > 3.5 else 2))
+    for kind, n in (("door", n_doors), ("window", n_windows)):
+        for _ in range(n):
+            for _try in range(30):
+                w = int(rng.integers(4))
+                o, t, nrm, L = _wall_frame(w, W, D)
+                ow = rng.uniform(0.8, 0.95) if kind == "door" else rng.uniform(0.9, min(2.2, L - 0.8))
+                s0 = rng.uniform(0.3, L - ow - 0.3) if L - ow - 0.6 > 0 else None
+                if s0 is None or any(s0 < b + 0.2 and a < s0 + ow + 0.2 for a, b in wall_used[w]):
+                    continue
+                wall_used[w].append((s0, s0 + ow))
+                if kind == "door":
+                    z0, z1 = 0.0, 2.05
+                    c = o + t * (s0 + ow / 2) + nrm * 0.5
+                    rects.append(_footprint(c[0], c[1], w * math.pi / 2, ow + 0.2, 1.0))  # keep the swing free
+                else:
+                    z0 = rng.uniform(0.8, 1.0)
+                    z1 = min(H - 0.25, z0 + rng.uniform(1.1, 1.6))
+                openings.append((w, s0, s0 + ow, z0, z1, kind))
+                break
+
+    def mount_ok(w, s0, s1, z0, z1, tall_ok=True):
+        for (ww, a, b, oz0, oz1, _k) in openings:
+            if ww == w and s0 < b + 0.1 and a < s1 + 0.1 and z0 < oz1 and oz0 < z1:
+                return False
+        return True
+
+    def place_wall(kind, dims, high=False, z0=0.0):
+        w_, d_, h_ = dims
+        for _try in range(60):
+            w = int(rng.integers(4))
+            o, t, nrm, L = _wall_frame(w, W, D)
+            if L < w_ + 0.1:
+                continue
+            s = rng.uniform(w_ / 2 + 0.05, L - w_ / 2 - 0.05)
+            zz0 = z0 if not high else rng.uniform(1.3, min(1.7, H - h_ - 0.1))
+            if not mount_ok(w, s - w_ / 2, s + w_ / 2, zz0, zz0 + h_ + (0.0 if high else 0.0)):
+                continue
+            c = o + t * s + nrm * (d_ / 2 + 0.02)
+            yaw = w * math.pi / 2
+            fp = _footprint(c[0], c[1], yaw, w_, d_)
+            if not high and _overlaps(fp, rects):
+                continue
+            if high and _overlaps(fp, [r for r in high_rects]):
+                continue
+            return Item(kind, [], w_, d_, h_, float(c[0]), float(c[1]), yaw, zz0), fp
+        return None, None
+
+    high_rects: list = []
+    fam_items = [it for it in fam.items if it[0] != "chair"]
+    chair_dims = [it[1] for it in fam.items if it[0] == "chair"][0]
+    order = sorted(range(len(fam_items)), key=lambda i: -fam_items[i][1][0] * fam_items[i][1][1])
+    chair_anchors = []  # (item, kind)
+    grid_items = [fam_items[i] for i in order if CATALOGUE[fam_items[i][0]][1] == "grid"]
+    if grid_items:  # classroom: rows of student desks facing the whiteboard wall
+        dims = grid_items[0][1]
+        n = len(grid_items)
+        cols = max(1, int((W - 1.6) // (dims[0] + 0.5)))
+        yaw0 = math.pi  # face wall 0 (-y)
+        jitter = rng.uniform(-0.3, 0.3, 2)
+        for k in range(n):
+            r_, c_ = divmod(k, cols)
+            x = 0.8 + dims[0] / 2 + c_ * (dims[0] + 0.5) + jitter[0] + rng.uniform(-0.08, 0.08)
+            y = 2.4 + r_ * (dims[1] + 0.9) + jitter[1]
+            fp = _footprint(x, y, yaw0, dims[0], dims[1])
+            if fp[2] > W - 0.4 or fp[3] > D - 0.6 or fp[0] < 0.3 or _overlaps(fp, rects):
+                continue
+            it = Item("student_desk", b_desk(dims, {}), *dims, x=x, y=y, yaw=yaw0 + rng.normal(0, 0.04))
+            items.append(it)
+            rects.append(fp)
+            chair_anchors.append((it, "front1"))
+    for i in order:
+        kind, dims, extra = fam_items[i]
+        how = CATALOGUE[kind][1]
+        it, fp = None, None
+        if how == "grid":
+            continue
+        if how in ("wall", "wall_high"):
+            it, fp = place_wall(kind, dims, high=(how == "wall_high"))
+            if it is not None:
+                (high_rects if how == "wall_high" else rects).append(fp)
+                if kind == "desk":
+                    chair_anchors.append((it, "front1"))
+        elif how == "mount":
+            zlo, zhi = MOUNT_Z[kind]
+            for _try in range(60):
+                w = int(rng.integers(4))
+                o, t, nrm, L = _wall_frame(w, W, D)
+                if L < dims[0] + 0.2:
+                    continue
+                s = rng.uniform(dims[0] / 2 + 0.1, L - dims[0] / 2 - 0.1)
+                z0 = rng.uniform(zlo, zhi)
+                if z0 + dims[2] > H - 0.1 or not mount_ok(w, s - dims[0] / 2, s + dims[0] / 2, z0, z0 + dims[2]):
+                    continue
+                if any(a < s + dims[0] / 2 + 0.1 and s - dims[0] / 2 < b + 0.1 for a, b in wall_used[w]):
+                    continue
+                # not behind tall furniture
+                c = o + t * s + nrm * 0.05
+                fp = _footprint(c[0], c[1], w * math.pi / 2, dims[0], 0.1)
+                blocked = [r for r, itm in zip(rects, items) if False]
+                tall = [(_footprint(q.x, q.y, q.yaw, q.w, q.d), q) for q in items if q.h > z0 - 0.05]
+                if _overlaps(fp, [r for r, _q in tall], pad=0.0) or _overlaps(fp, high_rects, pad=0.0):
+                    continue
+                wall_used[w].append((s - dims[0] / 2, s + dims[0] / 2))
+                it = Item(kind, [], *dims, x=float(c[0] - nrm[0] * 0.05), y=float(c[1] - nrm[1] * 0.05),
+                          yaw=w * math.pi / 2, z0=z0)
+                fp = None
+                break
+        elif how in ("centre", "free", "corner", "floor"):
+            for _try in range(80):
+                if how == "corner":
+                    cx = rng.choice([0.35, W - 0.35])
+                    cy = rng.choice([0.35, D - 0.35])
+                    yaw = 0.0
+                else:
+                    m = 0.9 if how == "centre" else 0.6
+                    cx, cy = rng.uniform(m, W - m), rng.uniform(m, D - m)
+                    yaw = (rng.integers(4) * math.pi / 2 if how != "free" else rng.uniform(0, 2 * math.pi))
+                    yaw += rng.normal(0, 0.05)
+                fp = _footprint(cx, cy, yaw, dims[0], dims[1])
+                if fp[0] < 0.05 or fp[1] < 0.05 or fp[2] > W - 0.05 or fp[3] > D - 0.05:
+                    continue
+                if how != "floor" and _overlaps(fp, rects, pad=0.5 if how == "centre" else 0.15):
+                    continue
+                if how == "floor" and _overlaps(fp, [_footprint(q.x, q.y, q.yaw, q.w, q.d) for q in items
+                                                     if q.kind == "floormat"]):
+                    continue
+                if how == "free":  # armchair: face the room centre
+                    yaw = math.atan2(-(W / 2 - cx), (D / 2 - cy))
+                it = Item(kind, [], *dims, x=float(cx), y=float(cy), yaw=float(yaw))
+                if kind in ("table", "dining_table"):
+                    chair_anchors.append((it, "around"))
+                break
+            if it is not None and how != "floor":
+                rects.append(fp)
+        if it is not None:
+            it.objs = CATALOGUE[kind][0](dims, {}) if kind != "picture" else w_picture(dims, {}, extra["mat"])
+            items.append(it)
+
+    # chairs: in front of desks, around tables
+    cw, cd, ch = chair_dims
+    for anchor, mode in chair_anchors:
+        R = _rot(anchor.yaw)[:2, :2]
+        if mode == "front1":
+            spots = [(0.0, anchor.d / 2 + 0.15, math.pi)]
+        else:
+            spots = [(sx * anchor.w / 4, sy * (anchor.d / 2 + 0.2), (0 if sy < 0 else math.pi)) for sx in (-1, 1)
+                     for sy in (-1, 1)] + [(sx * (anchor.w / 2 + 0.2), 0.0, sx * -math.pi / 2) for sx in (-1, 1)]
+        for lx, ly, lyaw in spots:
+            if mode == "around" and rng.uniform() < 0.3:
+                continue
+            p = np.array([anchor.x, anchor.y]) + R @ np.array([lx, ly])
+            yaw = anchor.yaw + lyaw + rng.normal(0, 0.15)
+            p += R @ np.array([rng.normal(0, 0.05), rng.normal(0, 0.05)])
+            fp = _footprint(p[0], p[1], yaw, cw, cd)
+            if fp[0] < 0.05 or fp[1] < 0.05 or fp[2] > W - 0.05 or fp[3] > D - 0.05:
+                continue
+            if _overlaps(fp, [r for r in rects if not _overlaps(r, [_footprint(anchor.x, anchor.y, anchor.yaw, anchor.w, anchor.d)], -0.01)], pad=0.02):
+                continue
+            items.append(Item("chair", b_chair(chair_dims, {}), cw, cd, ch, float(p[0]), float(p[1]), float(yaw)))
+            rects.append(fp)
+
+    # lights: 1-3 ceiling lights (dim settings: one weak warm lamp-like light)
+    n_lights = 1 if dim else int(rng.integers(1, 4))
+    temp = fam.temp + rng.uniform(-0.1, 0.1)
+    rgb = np.array([1.0, 0.85 + 0.12 * temp, 0.65 + 0.35 * temp])
+    lights = []
+    level = rng.uniform(0.8, 1.25) * (0.25 if dim else 1.0)
+    for k in range(n_lights):
+        pos = np.array([rng.uniform(0.25, 0.75) * W, rng.uniform(0.25, 0.75) * D, H - 0.25])
+        lights.append((pos, rgb * level * rng.uniform(4.0, 6.0) * (W * D / 20.0) ** 0.5 / n_lights ** 0.5))
+        items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2, 0.18, 0.08), "shade"),
+                                                          (_cyl(0, 0, -0.12, 0.01, 0.12), "metal")])],
+                          0.3, 0.3, 0.2, float(pos[0]), float(pos[1]), 0.0, H))
+    ambient = rgb * (0.22 if not dim else 0.015) * rng.uniform(0.8, 1.2)
+    window_emission = np.array([0.9, 1.0, 1.2]) * (rng.uniform(1.5, 3.0) if not dim else 0.04)
+    return Layout(W, D, H, items, rects, lights, ambient, window_emission, openings)
+
+
+# =============================================================================================================
+# the mesh of a setting
+# =============================================================================================================
+
+@dataclass
+class SceneMesh:
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_part: np.ndarray  # part index per face
+    part_sem: np.ndarray  # NYU40 id per part
+    part_inst: np.ndarray  # instance id per part (>= 1)
+    part_entity: np.ndarray  # render entity id per part (>= 1)
+    part_mat: np.ndarray  # material index per part
+    part_inv: np.ndarray  # (P, 4, 4) world -> part-local (for textures)
+    materials: list
+    instances: list  # (instance id, NYU40 id, name)
+
+
+def _wall_pieces(L: float, H: float, holes: list) -> list:
+    """Rectangles (s0, s1, z0, z1) covering [0, L] x [0, H] minus the given holes."""
+    cuts = sorted({0.0, L, *[h[0] for h in holes], *[h[1] for h in holes]})
+    out = []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if b - a < 1e-6:
+            continue
+        mid = (a + b) / 2
+        zs = sorted((h[2], h[3]) for h in holes if h[0] <= mid <= h[1])
+        z = 0.0
+        for z0, z1 in zs:
+            if z0 > z:
+                out.append((a, b, z, z0))
+            z = max(z, z1)
+        if z < H:
+            out.append((a, b, z, H))
+    return out
+
+
+def build_mesh(fam: Family, lay: Layout, seed: int, setting_index: int) -> SceneMesh:
+    rng = np.random.default_rng([seed, 15485863, setting_index])
+    mat_names = sorted(fam.materials)
+    mat_index = {k: i for i, k in enumerate(mat_names)}
+    materials = [fam.materials[k] for k in mat_names]
+    glass = Material(GLASS, (0.05, 0.05, 0.05), emission=tuple(lay.window_emission))
+    materials.append(glass)
+    mat_index["glass"] = len(materials) - 1
+
+    V, F, FP = [], [], []
+    psem, pinst, pmat, pinv = [], [], [], []
+    instances = []
+    nv = 0
+
+    def add_obj(sem: int, parts: list, T: np.ndarray, name: str):
+        nonlocal nv
+        inst = len(instances) + 1
+        instances.append((inst, sem, name))
+        inv = np.linalg.inv(T)
+        for (v, f), mk in parts:
+            vw = v @ T[:3, :3].T + T[:3, 3]
+            pidx = len(psem)
+            V.append(vw)
+            F.append(f + nv)
+            FP.append(np.full(len(f), pidx))
+            nv += len(v)
+            psem.append(sem)
+            pinst.append(inst)
+            pmat.append(mat_index[mk])
+            pinv.append(inv)
+
+    I4 = np.eye(4)
+    W, D, H = lay.W, lay.D, lay.H
+    # floor, ceiling
+    add_obj(ID["floor"], [(_box((-0.2, -0.2, -0.1), (W + 0.2, D + 0.2, 0.0)), "floor")], I4, "floor")
+    add_obj(ID["ceiling"], [(_box((-0.2, -0.2, H), (W + 0.2, D + 0.2, H + 0.1)), "ceiling")], I4, "ceiling")
+    # walls with holes for doors and windows; local wall frame: x along wall, y into the room, z up
+    for w in range(4):
+        o, t, nrm, L = _wall_frame(w, W, D)
+        T = np.eye(4)
+        T[:3, :3] = _rot(w * math.pi / 2)
+        T[:2, 3] = o
+        holes = [(a, b, z0, z1) for (ww, a, b, z0, z1, k) in lay.openings if ww == w]
+        parts = [(_box((s0, -0.12, z0), (s1, 0.0, z1)), fam.wall_key[w]) for s0, s1, z0, z1 in _wall_pieces(L, H, holes)]
+        add_obj(ID["wall"], parts, T, f"wall{w}")
+        for (ww, a, b, z0, z1, k) in lay.openings:
+            if ww != w:
+                continue
+            if k == "door":
+                open_ = rng.uniform() < 0.2
+                leaf = _box((a + 0.02, -0.06, 0.0), (b - 0.02, -0.02, z1 - 0.02))
+                frame = [(_box((a - 0.06, -0.13, 0), (a, 0.02, z1 + 0.06)), "frame"),
+                         (_box((b, -0.13, 0), (b + 0.06, 0.02, z1 + 0.06)), "frame"),
+                         (_box((a - 0.06, -0.13, z1), (b + 0.06, 0.02, z1 + 0.06)), "frame")]
+                if open_:  # swung open into the room
+                    leaf = _box((a + 0.02, 0.0, 0.0), (a + 0.06, b - a - 0.04, z1 - 0.02))
+                knob = _box((b - 0.12, -0.02, 1.0), (b - 0.08, 0.04, 1.04)) if not open_ else _box((a + 0.06, b - a - 0.2, 1.0), (a + 0.1, b - a - 0.15, 1.04))
+                add_obj(ID["door"], [(leaf, "door"), (knob, "metal")] + frame, T, "door")
+                if not open_:
+                    pass
+            else:
+                parts = [(_box((a - 0.05, -0.13, z0 - 0.05), (a, 0.02, z1 + 0.05)), "frame"),
+                         (_box((b, -0.13, z0 - 0.05), (b + 0.05, 0.02, z1 + 0.05)), "frame"),
+                         (_box((a - 0.05, -0.13, z1), (b + 0.05, 0.02, z1 + 0.05)), "frame"),
+                         (_box((a - 0.08, -0.13, z0 - 0.05), (b + 0.08, 0.05, z0)), "frame"),
+                         (_box(((a + b) / 2 - 0.02, -0.08, z0), ((a + b) / 2 + 0.02, -0.05, z1)), "frame")]
+                if rng.uniform() < 0.85:  # glass pane (else the opening is left open: invalid pixels beyond)
+                    parts.append((_box((a, -0.07, z0), (b, -0.06, z1)), "glass"))
+                add_obj(ID["window"], parts, T, "window")
+                r = rng.uniform()
+                if r < 0.3:  # blinds: slats over the upper part
+                    zb = rng.uniform(z0, (z0 + z1) / 2)
+                    slats = [(_box((a, 0.03, z), (b, 0.05, z + 0.035)), "frame") for z in np.arange(zb, z1 - 0.03, 0.05)]
+                    if slats:
+                        add_obj(ID["blinds"], slats, T, "blinds")
+                elif r < 0.65:  # curtains on both sides
+                    for side in (-1, 1):
+                        cw = rng.uniform(0.3, 0.5)
+                        x0 = a - 0.15 if side < 0 else b + 0.15 - cw
+                        add_obj(ID["curtain"], [(_box((x0, 0.04, 0.1 if z0 > 0.9 else z0 - 0.2), (x0 + cw, 0.1, min(H - 0.05, z1 + 0.25))), "curtain")], T, "curtain")
+    # furniture
+    for it in lay.items:
+        T = np.eye(4)
+        T[:3, :3] = _rot(it.yaw)
+        T[:3, 3] = (it.x, it.y, it.z0)
+        for ob in it.objs:
+            name = [k for k, v in ID.items() if v == ob.sem][0]
+            add_obj(ob.sem, ob.parts, T, name)
+    vertices = np.concatenate(V)
+    faces = np.concatenate(F).astype(np.int64)
+    npart = len(psem)
+    ent = np.arange(1, npart + 1)
+    return SceneMesh(vertices, faces, np.concatenate(FP), np.array(psem, np.int16), np.array(pinst, np.int16),
+                     ent.astype(np.int16), np.array(pmat), np.stack(pinv), materials, instances)
+
+
+# =============================================================================================================
+# cameras and trajectories
+# =============================================================================================================
+
+def look_rotation(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """R_world_from_cam for a camera at `eye` looking at `target` (x right, y up, z backward; world z up)."""
+    f = target - eye
+    f = f / np.linalg.norm(f)
+    x = np.cross(f, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    z = -f
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=1)
+
+
+def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int) -> list:
+    """1-3 scenes; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres)."""
+    rng = np.random.default_rng([seed, 32452843, setting_index])
+    n_scenes = int(min(rng.integers(1, 4), max(1, n_frames // 3)))
+    counts = [n_frames // n_scenes + (1 if k < n_frames % n_scenes else 0) for k in range(n_scenes)]
+    res = 0.1
+    nx, ny = int(lay.W / res), int(lay.D / res)
+    gx, gy = (np.arange(nx) + 0.5) * res, (np.arange(ny) + 0.5) * res
+    X, Y = np.meshgrid(gx, gy, indexing="ij")
+    free = (X > 0.5) & (X < lay.W - 0.5) & (Y > 0.5) & (Y < lay.D - 0.5)
+    for r in lay.rects:
+        free &= ~((X > r[0] - 0.3) & (X < r[2] + 0.3) & (Y > r[1] - 0.3) & (Y < r[3] + 0.3))
+    if not free.any():
+        free = (X > 0.4) & (X < lay.W - 0.4) & (Y > 0.4) & (Y < lay.D - 0.4)
+
+    def is_free(p):
+        i, j = int(p[0] / res), int(p[1] / res)
+        return 0 <= i < nx and 0 <= j < ny and bool(free[i, j])
+
+    interest = [np.array([it.x, it.y, it.z0 + max(0.3, it.h * 0.6)]) for it in lay.items if it.kind != "ceiling_lamp"]
+    interest.append(np.array([lay.W / 2, lay.D / 2, 0.8]))
+    scenes = []
+    fi, fj = np.nonzero(free)
+    for n in counts:
+        k = int(rng.integers(len(fi)))
+        p = np.array([gx[fi[k]], gy[fj[k]]]) + rng.uniform(-0.04, 0.04, 2)
+        # look towards the far side of the room: choose targets far from the start
+        far = [q for q in interest if np.linalg.norm(q[:2] - p) > 1.6] or interest
+        A = far[int(rng.integers(len(far)))]
+        # B: a second target 60-160 degrees away (as seen from the start), so each scene pans across the room
+        ang = lambda q: math.atan2(q[1] - p[1], q[0] - p[0])
+        sep = [q for q in interest if np.linalg.norm(q[:2] - p) > 1.0
+               and math.radians(60) < abs((ang(q) - ang(A) + math.pi) % (2 * math.pi) - math.pi) < math.radians(160)]
+        B = sep[int(rng.integers(len(sep)))] if sep else far[int(rng.integers(len(far)))]
+        heading = math.atan2(*(A[:2] - p)[::-1]) + rng.choice([-1, 1]) * math.pi / 2
+        length = rng.uniform(1.2, 3.5)
+        step = length / max(1, n - 1)
+        pts = [p.copy()]
+        sub = 4
+        for s in range((n - 1) * sub):
+            heading += rng.normal(0, 0.12)
+            for _t in range(16):
+                q = pts[-1] + step / sub * np.array([math.cos(heading), math.sin(heading)])
+                if is_free(q):
+                    break
+                heading += rng.uniform(0.5, 2.5)
+            else:
+                q = pts[-1]
+            pts.append(q)
+        pts = np.array(pts[::sub])[:n]
+        h0 = rng.uniform(1.0, 1.8)
+        eyes = np.c_[pts, np.clip(h0 + 0.03 * np.sin(np.linspace(0, 3, n) + rng.uniform(0, 6)), 1.0, 1.8)]
+        s = np.linspace(0, 1, n)[:, None]
+        looks = A * (1 - s) + B * s
+        Rs = []
+        for e, l in zip(eyes, looks):
+            d = l - e
+            horiz = np.linalg.norm(d[:2])
+            if horiz < 0.5:  # too close: look further along the same direction
+                d[:2] = d[:2] / max(horiz, 1e-6) * 1.5 if horiz > 1e-6 else np.array([1.5, 0.0])
+                horiz = 1.5
+            pitch = np.clip(math.atan2(d[2], horiz), math.radians(-22), math.radians(4))
+            d = np.r_[d[:2] / horiz, math.tan(pitch)]
+            Rs.append(look_rotation(e, e + d))
+        looks = eyes + np.array([-R[:, 2] for R in Rs]) * np.linalg.norm(looks - eyes, axis=1, keepdims=True)
+        scenes.append((eyes, np.stack(Rs), looks))
+    return scenes
+
+
+# =============================================================================================================
+# rendering
+# =============================================================================================================
+
+class Renderer:
+    """Embree (via trimesh) ray caster + shader for one setting's mesh."""
+
+    def __init__(self, mesh: SceneMesh, lay: Layout):
+        import trimesh
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        self.mesh = mesh
+        self.lay = lay
+        self.tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+        self.normals = np.asarray(self.tm.face_normals)
+        self.v0 = mesh.vertices[mesh.faces[:, 0]]
+        self.rmi = RayMeshIntersector(self.tm, scale_to_box=False)
+
+    def cast(self, origin: np.ndarray, dirs: np.ndarray):
+        """Primary rays from one origin: (face index or -1, distance along unit dirs)."""
+        o = np.broadcast_to(origin, dirs.shape)
+        tri = self.rmi.intersects_first(o, dirs)
+        hit = tri >= 0
+        t = np.full(len(dirs), np.nan)
+        n = self.normals[tri[hit]]
+        t[hit] = np.einsum("ij,ij->i", self.v0[tri[hit]] - origin, n) / np.einsum("ij,ij->i", dirs[hit], n)
+        return tri, t
+
+    def shade(self, tri: np.ndarray, pts: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(n, 3) linear radiance of hit points `pts` on faces `tri` seen along `dirs`."""
+        m = self.mesh
+        part = m.face_part[tri]
+        n = self.normals[tri]
+        flip = np.einsum("ij,ij->i", n, dirs) > 0
+        n[flip] *= -1
+        albedo = np.zeros_like(pts)
+        emission = np.zeros_like(pts)
+        mats = m.part_mat[part]
+        ph = np.c_[pts, np.ones(len(pts))]
+        for mi in np.unique(mats):
+            sel = mats == mi
+            inv = m.part_inv[part[sel]]
+            local = np.einsum("nij,nj->ni", inv[:, :3, :], ph[sel])
+            mat = m.materials[mi]
+            albedo[sel] = _albedo(mat, local)
+            emission[sel] = mat.emission
+        light = np.broadcast_to(self.lay.ambient, pts.shape).copy()
+        # cheap ambient occlusion-ish darkening near the floor / ceiling corners
+        light *= (0.75 + 0.25 * np.clip(pts[:, 2:3] / 0.5, 0, 1))
+        origin = pts + n * 2e-3
+        for lp, lrgb in self.lay.lights:
+            L = lp - origin
+            dist = np.linalg.norm(L, axis=1)
+            L /= dist[:, None]
+            cos = np.einsum("ij,ij->i", n, L)
+            lit = cos > 0
+            occl = self.rmi._scene.run(origin[lit], L[lit], dists=(dist[lit] - 0.05).astype(np.float32), query="OCCLUDED")
+            vis = np.zeros(len(pts))
+            vis[np.nonzero(lit)[0][occl == -1]] = 1.0
+            light += lrgb * (vis * cos / np.maximum(dist ** 2, 0.25))[:, None]
+        lamp_glow = emission * np.clip(self.lay.lights[0][1].sum() / 6.0, 0.1, 2.0) if len(self.lay.lights) else emission
+        glass = np.all(emission > 0.5, axis=1)
+        lamp_glow[glass] = emission[glass]
+        return albedo * light + lamp_glow
+
+
+@dataclass
+class FrameOut:
+    color: np.ndarray
+    depth: np.ndarray
+    position: np.ndarray  # metres
+    semantic: np.ndarray
+    instance: np.ndarray
+    entity: np.ndarray
+
+
+def render_frame(r: Renderer, rays_cam: np.ndarray, eye: np.ndarray, R: np.ndarray, exposure: float,
+                 timing: Optional[dict] = None) -> FrameOut:
+    Hh, Ww = rays_cam.shape[:2]
+    t0 = time.perf_counter()
+    d = rays_cam.reshape(-1, 3) @ R.T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    tri, t = r.cast(eye, d)
+    t1 = time.perf_counter()
+    hit = tri >= 0
+    pts = eye + d[hit] * t[hit, None]
+    col = np.zeros((len(d), 3))
+    col[hit] = r.shade(tri[hit], pts, d[hit]) * exposure
+    pos = np.full((len(d), 3), np.nan)
+    pos[hit] = pts
+    sem = np.full(len(d), -1, np.int16)
+    inst = np.full(len(d), -1, np.int16)
+    ent = np.full(len(d), -1, np.int16)
+    part = r.mesh.face_part[tri[hit]]
+    sem[hit] = r.mesh.part_sem[part]
+    inst[hit] = r.mesh.part_inst[part]
+    ent[hit] = r.mesh.part_entity[part]
+    depth = np.where(hit, t, np.nan)
+    if timing is not None:
+        timing["cast"] = timing.get("cast", 0.0) + (t1 - t0)
+        timing["shade"] = timing.get("shade", 0.0) + (time.perf_counter() - t1)
+    sh = (Hh, Ww)
+    return FrameOut(col.reshape(sh + (3,)), depth.reshape(sh), pos.reshape(sh + (3,)), sem.reshape(sh),
+                    inst.reshape(sh), ent.reshape(sh))
+
+
+# =============================================================================================================
+# the plan of a dataset and the writing of settings
+# =============================================================================================================
+
+def plan(study) -> list[dict]:
+    """One dict per setting: name, index, family, room type, split, dim, tilt-shift, meters_per_asset_unit, frames."""
+    ds = study.dataset
+    n_test, n_train = int(ds.test_settings), int(ds.train_settings)
+    fs = max(1, int(ds.family_size))
+    settings = []
+    fam = -1
+    for split, n, frames in (("test", n_test, ds.frames_per_setting), ("train", n_train, ds.train_frames_per_setting)):
+        for k in range(n):
+            if k % fs == 0:
+                fam += 1
+            settings.append({"split": split, "family": fam, "member": k % fs, "frames": int(frames)})
+    total = len(settings)
+    rng = np.random.default_rng([study.seed, 2718])
+    n_fam = fam + 1
+    room_order = list(rng.permutation(len(ROOM_TYPES)))
+    # test families first cycle through the six main room types, then everything cycles through all of them
+    main = [i for i in room_order if ROOM_TYPES[i] in ROOM_TYPES[:6]]
+    rest = [i for i in room_order if i not in main]
+    cycle = main + rest
+    fam_room = [ROOM_TYPES[cycle[f % len(cycle)]] for f in range(n_fam)]
+    n_dim = int(math.ceil(ds.dim_fraction * total - 1e-9))
+    dim_set = set(rng.permutation(total)[:n_dim].tolist())
+    n_tilt = min(total, int(ds.tilt_shift_settings))
+    tilt_set = set(np.round(np.linspace(0, total, n_tilt, endpoint=False)).astype(int).tolist()) if n_tilt else set()
+    for i, s in enumerate(settings):
+        s["index"] = i
+        s["name"] = f"ai_{VOLUME0 + s['family']:03d}_{s['member'] + 1:03d}"
+        s["room_type"] = fam_room[s["family"]]
+        s["scene_type"] = SCENE_TYPE_LABEL[s["room_type"]]
+        s["dim"] = i in dim_set
+        s["tilt_shift"] = i in tilt_set
+        s["meters_per_asset_unit"] = 0.0254 if i % 4 == 2 else 0.01
+    return settings
+
+
+def _camera_M(s: dict, width: int, height: int) -> np.ndarray:
+    if s["tilt_shift"]:
+        return np.array(TILT_SHIFT_M)
+    return Camera.canonical(width, height).M
+
+
+def _camera_proj(s: dict, width: int, height: int) -> np.ndarray:
+    if s["tilt_shift"]:
+        return np.array(TILT_SHIFT_PROJ).reshape(4, 4)
+    tx = math.tan(FOV_X / 2)
+    ty = tx * height / width
+    return np.array([[1 / tx, 0, 0, 0], [0, 1 / ty, 0, 0], [0, 0, -1.002002002002002, -2.002002002002002],
+                     [0, 0, -1.0, 0]])
+
+
+def _setting_key(s: dict, study) -> dict:
+    ds = study.dataset
+    return {"version": FORMAT_VERSION, "seed": int(study.seed), "width": int(ds.width), "height": int(ds.height),
+            "family_size": int(ds.family_size), "setting": s}
+
+
+def build_setting(s: dict, seed: int):
+    fam = make_family(seed, s["family"], s["room_type"])
+    lay = make_layout(fam, seed, s["index"], s["dim"])
+    mesh = build_mesh(fam, lay, seed, s["index"])
+    scenes = make_trajectories(lay, s["frames"], seed, s["index"])
+    return fam, lay, mesh, scenes
+
+
+def _write_csv(path: Path, header: list, rows: list) -> None:
+    buf = _io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(header)
+    w.writerows(rows)
+    write_text(path, buf.getvalue())
+
+
+def _write_jpg(path: Path, rgb: np.ndarray) -> None:
+    import cv2
+
+    ok, data = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    if not ok:
+        raise RuntimeError(f"{path}: JPEG encoding failed")
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data.tobytes())
+
+
+def render_setting(s: dict, study_key: dict, width: int, height: int, seed: int, out: Path,
+                   timing: Optional[dict] = None, compression: int = H5_COMPRESSION) -> dict:
+    """Render setting `s` into folder `out` (created). Returns per-setting info (scenes, frames, classes)."""
+    t0 = time.perf_counter()
+    fam, lay, mesh, scenes = build_setting(s, seed)
+    r = Renderer(mesh, lay)
+    if timing is not None:
+        timing["build"] = timing.get("build", 0.0) + time.perf_counter() - t0
+    mpau = float(s["meters_per_asset_unit"])
+    cam = Camera(tuple(map(tuple, _camera_M(s, width, height))), mpau)
+    rays = cam.rays(height, width)
+    rng = np.random.default_rng([seed, 49979687, s["index"]])
+    detail = out / "_detail"
+    detail.mkdir(parents=True, exist_ok=True)
+    _write_csv(detail / "metadata_scene.csv", ["parameter_name", "parameter_value"], [["meters_per_asset_unit", repr(mpau)]])
+    _write_csv(detail / "metadata_cameras.csv", ["camera_name"], [[f"cam_{c:02d}"] for c in range(len(scenes))])
+    classes: set = set()
+    frames = []
+    for c, (eyes, Rs, looks) in enumerate(scenes):
+        cname = f"cam_{c:02d}"
+        cdir = detail / cname
+        cdir.mkdir(parents=True, exist_ok=True)
+        write_h5(cdir / "camera_keyframe_positions.hdf5", (eyes / mpau).astype(np.float64))
+        write_h5(cdir / "camera_keyframe_orientations.hdf5", Rs.astype(np.float64))
+        write_h5(cdir / "camera_keyframe_frame_indices.hdf5", np.arange(len(eyes), dtype=np.int64))
+        write_h5(cdir / "camera_keyframe_look_at_positions.hdf5", (looks / mpau).astype(np.float64))
+        _write_csv(cdir / "metadata_camera.csv", ["parameter_name", "parameter_value"], [["frame_time_seconds", "1.0"]])
+        fdir = out / "images" / f"scene_{cname}_final_hdf5"
+        gdir = out / "images" / f"scene_{cname}_geometry_hdf5"
+        pdir = out / "images" / f"scene_{cname}_final_preview"
+        for d in (fdir, gdir, pdir):
+            d.mkdir(parents=True, exist_ok=True)
+        for i, (eye, R) in enumerate(zip(eyes, Rs)):
+            exposure = float(np.exp(rng.uniform(np.log(0.7), np.log(1.3))))
+            fo = render_frame(r, rays, eye, R, exposure, timing)
+            tw = time.perf_counter()
+            stem = f"frame.{i:04d}"
+            color16 = fo.color.astype(np.float16)
+            write_h5(fdir / f"{stem}.color.hdf5", color16, compression)
+            write_h5(gdir / f"{stem}.depth_meters.hdf5", fo.depth.astype(np.float16), compression)
+            write_h5(gdir / f"{stem}.position.hdf5", (fo.position / mpau).astype(np.float16), compression)
+            write_h5(gdir / f"{stem}.semantic.hdf5", fo.semantic, compression)
+            write_h5(gdir / f"{stem}.semantic_instance.hdf5", fo.instance, compression)
+            write_h5(gdir / f"{stem}.render_entity_id.hdf5", fo.entity, compression)
+            _write_jpg(pdir / f"{stem}.tonemap.jpg", tonemap(color16.astype(np.float32), fo.entity != -1))
+            if timing is not None:
+                timing["write"] = timing.get("write", 0.0) + time.perf_counter() - tw
+                timing["frames"] = timing.get("frames", 0) + 1
+            classes.update(int(v) for v in np.unique(fo.semantic) if v > 0)
+            frames.append((cname, i))
+    info = dict(s)
+    info.update({"scenes": [f"cam_{c:02d}" for c in range(len(scenes))],
+                 "frames_per_scene": [len(e) for e, _, _ in scenes], "classes": sorted(classes),
+                 "room_size_m": [round(lay.W, 3), round(lay.D, 3), round(lay.H, 3)],
+                 "num_lights": len(lay.lights), "num_instances": len(mesh.instances)})
+    write_json(detail / "monolib_synth_setting.json", {"key": study_key, "info": info})
+    return info
+
+
+def _worker(args):
+    s, key, width, height, seed, out_dir = args
+    import threading  # noqa: F401 -- keep workers single-threaded-ish (numpy via env below)
+
+    final = Path(out_dir) / s["name"]
+    tmp = Path(out_dir) / f".tmp_{s['name']}_{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    try:
+        info = render_setting(s, key, width, height, seed, tmp)
+        if final.exists():
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return info
+
+
+def _finished(final: Path, key: dict) -> Optional[dict]:
+    marker = final / "_detail" / "monolib_synth_setting.json"
+    if not marker.is_file():
+        return None
+    try:
+        data = json.loads(marker.read_text())
+    except (OSError, ValueError):
+        return None
+    return data.get("info") if data.get("key") == json.loads(json.dumps(key)) else None
+
+
+def render_dataset(study, out_dir, progress: bool = True) -> Path:
+    """Render every setting of `study` into `out_dir` in Hypersim's layout (resumable, deterministic)."""
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ds = study.dataset
+    W, H = int(ds.width), int(ds.height)
+    settings = plan(study)
+    for p in out_dir.glob(".tmp_ai_*"):  # leftovers of a killed run
+        shutil.rmtree(p, ignore_errors=True)
+    infos: dict[str, dict] = {}
+    todo = []
+    for s in settings:
+        key = _setting_key(s, study)
+        info = _finished(out_dir / s["name"], key)
+        if info is not None:
+            infos[s["name"]] = info
+        else:
+            todo.append((s, key, W, H, int(study.seed), str(out_dir)))
+    print(f"monolib.synth: {len(settings)} settings in {out_dir}: {len(infos)} already complete (skipped), "
+          f"{len(todo)} to render", flush=True)
+    workers = max(1, min(int(ds.workers), len(todo)))
+    t0 = time.perf_counter()
+    bar = tqdm(total=len(todo), desc="render settings", unit="setting", disable=not progress)
+    if todo:
+        if workers == 1:
+            for a in todo:
+                info = _worker(a)
+                infos[info["name"]] = info
+                bar.update(1)
+        else:
+            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+            with ctx.Pool(workers, initializer=_init_worker) as pool:
+                for info in pool.imap_unordered(_worker, todo):
+                    infos[info["name"]] = info
+                    bar.update(1)
+    bar.close()
+    elapsed = time.perf_counter() - t0
+    _write_root(out_dir, study, settings, infos, W, H)
+    if todo:
+        nframes = sum(a[0]["frames"] for a in todo)
+        print(f"monolib.synth: rendered {len(todo)} settings ({nframes} frames) in {elapsed:.1f} s", flush=True)
+    return out_dir
+
+
+def _init_worker():
+    try:
+        import threadpoolctl  # noqa: F401
+
+        threadpoolctl.threadpool_limits(1)
+    except Exception:
+        pass
+
+
+def _write_root(out_dir: Path, study, settings: list, infos: dict, W: int, H: int) -> None:
+    split_rows, cam_rows, traj_rows = [], [], []
+    for s in settings:
+        info = infos[s["name"]]
+        for cname, n in zip(info["scenes"], info["frames_per_scene"]):
+            for i in range(n):
+                split_rows.append([s["name"], cname, i, "True", "", s["split"]])
+            traj_rows.append([f"{s['name']}_{cname}", "", "", "", "", "", "", s["scene_type"], "monolib.synth", ""])
+        row = {c: "" for c in CAMERA_COLUMNS}
+        M, P = _camera_M(s, W, H), _camera_proj(s, W, H)
+        row.update({"scene_name": s["name"], "settings_output_img_height": repr(float(H)),
+                    "settings_output_img_width": repr(float(W)),
+                    "settings_units_info_meters_scale": repr(float(s["meters_per_asset_unit"])),
+                    "use_camera_physical": str(bool(s["tilt_shift"])), "settings_camera_fov": repr(FOV_X)})
+        for a in range(3):
+            for b in range(3):
+                row[f"M_cam_from_uv_{a}{b}"] = repr(float(M[a, b]))
+        for a in range(4):
+            for b in range(4):
+                row[f"M_proj_{a}{b}"] = repr(float(P[a, b]))
+        cam_rows.append([row[c] for c in CAMERA_COLUMNS])
+    _write_csv(out_dir / "metadata_images_split_scene_v1.csv", SPLIT_COLUMNS, split_rows)
+    _write_csv(out_dir / "metadata_camera_parameters.csv", CAMERA_COLUMNS, cam_rows)
+    _write_csv(out_dir / "metadata_camera_trajectories.csv", TRAJECTORY_COLUMNS, traj_rows)
+    ds = study.dataset
+    meta = {"generator": "monolib.synth", "version": FORMAT_VERSION, "seed": int(study.seed),
+            "dataset": {k: getattr(ds, k) for k in ("width", "height", "train_settings", "test_settings",
+                                                    "family_size", "frames_per_setting", "train_frames_per_setting",
+                                                    "dim_fraction", "tilt_shift_settings")},
+            "settings": [{k: infos[s["name"]].get(k) for k in
+                          ("name", "index", "family", "member", "room_type", "scene_type", "split", "dim",
+                           "tilt_shift", "meters_per_asset_unit", "frames", "scenes", "frames_per_scene", "classes",
+                           "room_size_m", "num_lights")} for s in settings]}
+    write_json(out_dir / "monolib_synth.json", meta)
+
+
+# =============================================================================================================
+# benchmark
+# =============================================================================================================
+
+def benchmark(width: int = 256, height: int = 192, frames: int = 20, seed: int = 0) -> dict:
+    """Render one setting's frames into a temporary folder; print and return frames per second by stage."""
+    import tempfile
+    from types import SimpleNamespace
+
+    ds = SimpleNamespace(width=width, height=height, train_settings=0, test_settings=1, family_size=1,
+                         frames_per_setting=frames, train_frames_per_setting=frames, dim_fraction=0.0,
+                         tilt_shift_settings=0, workers=1)
+    study = SimpleNamespace(seed=seed, dataset=ds)
+    s = plan(study)[0]
+    timing: dict = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        render_setting(s, _setting_key(s, study), width, height, seed, Path(tmp) / s["name"], timing)
+        total = time.perf_counter() - t0
+    n = timing.get("frames", 0)
+    res = {"width": width, "height": height, "frames": n, "total_s": total, "build_s": timing.get("build", 0.0),
+           "cast_ms_per_frame": 1000 * timing.get("cast", 0.0) / n, "shade_ms_per_frame": 1000 * timing.get("shade", 0.0) / n,
+           "write_ms_per_frame": 1000 * timing.get("write", 0.0) / n, "fps": n / total}
+    print(f"monolib.synth benchmark {width}x{height}, {n} frames: {res['fps']:.2f} frames/s overall; per frame: "
+          f"cast {res['cast_ms_per_frame']:.1f} ms, shade (+shadows) {res['shade_ms_per_frame']:.1f} ms, "
+          f"write {res['write_ms_per_frame']:.1f} ms; scene build {res['build_s']:.2f} s")
+    return res
+
+
+if __name__ == "__main__":
+    benchmark()

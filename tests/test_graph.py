@@ -1,0 +1,93 @@
+"""Scene graphs from hand-built geometry: known medians, known edges at a threshold, empty and one-node frames."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from monolib.graph import build_scene_graph, grouped_median, scene_nodes
+from monolib.hypersim import Camera
+from monolib.scenegraphs import at_threshold, complete_graph
+
+CAM = Camera.canonical(8, 6)
+
+
+def frame_with_blocks():
+    """8x6 frame: label 5 on the left 4 columns at 2 m, label 7 on the right 4 at 5 m; one NaN, one -1 pixel."""
+    depth = np.full((6, 8), 2.0, np.float32)
+    depth[:, 4:] = 5.0
+    semantic = np.full((6, 8), 5, np.int16)
+    semantic[:, 4:] = 7
+    rgb = np.zeros((6, 8, 3), np.uint8)
+    rgb[:, :4] = (255, 0, 0)
+    rgb[:, 4:] = (0, 0, 255)
+    depth[0, 0] = np.nan          # left out
+    semantic[5, 7] = -1            # left out
+    return rgb, depth, semantic
+
+
+def test_nodes_are_per_axis_medians_of_back_projected_points():
+    rgb, depth, semantic = frame_with_blocks()
+    x, pos = scene_nodes(rgb, depth, semantic, CAM)
+    assert x[:, 0].tolist() == [5.0, 7.0]
+    np.testing.assert_allclose(x[:, 1:], [[1, 0, 0], [0, 0, 1]])
+    pts = CAM.backproject(depth)
+    for row, label in enumerate([5, 7]):
+        keep = (semantic == label) & np.isfinite(depth)
+        np.testing.assert_allclose(pos[row], np.median(pts[keep], axis=0), rtol=1e-6)
+    assert pos[0, 2] == pytest.approx(-2.0) and pos[1, 2] == pytest.approx(-5.0)  # camera looks along -z
+
+
+def test_edges_at_a_threshold_both_directions_with_lengths():
+    rgb, depth, semantic = frame_with_blocks()
+    _, pos = scene_nodes(rgb, depth, semantic, CAM)
+    length = float(np.linalg.norm(pos[0] - pos[1]))
+    g = build_scene_graph(rgb, depth, semantic, CAM, threshold=length + 0.01)
+    assert g.edge_index.tolist() == [[0, 1], [1, 0]]
+    np.testing.assert_allclose(g.edge_attr.squeeze(1).numpy(), [length, length], rtol=1e-5)
+    assert build_scene_graph(rgb, depth, semantic, CAM, threshold=length - 0.01).edge_index.shape == (2, 0)
+    assert build_scene_graph(rgb, depth, semantic, CAM, threshold=math.inf).edge_index.shape == (2, 2)
+
+
+def test_complete_graph_then_threshold_equals_direct_build():
+    rng = np.random.default_rng(1)
+    depth = rng.uniform(0.5, 9, (24, 32)).astype(np.float32)
+    semantic = rng.integers(1, 12, (24, 32)).astype(np.int16) * (rng.random((24, 32)) > 0.3) - 0
+    semantic[semantic == 0] = -1
+    rgb = rng.integers(0, 255, (24, 32, 3), dtype=np.uint8)
+    cam = Camera.canonical(32, 24)
+    x, pos = scene_nodes(rgb, depth, semantic, cam)
+    full = complete_graph(x, pos, "ai_900_001", "ai_900_001/cam_00/0000")
+    for t in (0.3, 1.0, 2.0, math.inf):
+        direct = build_scene_graph(rgb, depth, semantic, cam, t)
+        via = at_threshold(full, t)
+        as_set = lambda ei: set(map(tuple, ei.t().tolist()))
+        assert as_set(direct.edge_index) == as_set(via.edge_index)
+        assert via.edge_index.shape[1] % 2 == 0
+
+
+def test_empty_and_one_node_frames():
+    depth = np.full((6, 8), np.nan, np.float32)
+    semantic = np.full((6, 8), 3, np.int16)
+    g = build_scene_graph(None, depth, semantic, CAM, 1.0)
+    assert g.num_nodes == 0 and g.edge_index.shape == (2, 0)
+    g = build_scene_graph(None, np.ones((6, 8), np.float32), np.full((6, 8), -1, np.int16), CAM, 1.0)
+    assert g.num_nodes == 0
+    g = build_scene_graph(None, np.ones((6, 8), np.float32), semantic, CAM, math.inf)
+    assert g.num_nodes == 1 and g.edge_index.shape == (2, 0)
+    full = complete_graph(np.zeros((0, 4)), np.zeros((0, 3)), "a", "b")
+    assert at_threshold(full, 1.0).edge_index.shape == (2, 0)
+
+
+def test_grouped_median_matches_numpy_on_even_and_odd_groups():
+    rng = np.random.default_rng(0)
+    labels = rng.integers(1, 41, 5001)
+    values = rng.normal(size=(5001, 3)) * 100
+    uniq, med = grouped_median(labels, values)
+    for i, label in enumerate(uniq):
+        np.testing.assert_allclose(med[i], np.median(values[labels == label], axis=0), rtol=1e-9, atol=1e-9)
+
+
+def test_mismatched_shapes_raise():
+    with pytest.raises(ValueError, match="differ"):
+        scene_nodes(None, np.ones((4, 4), np.float32), np.ones((4, 5), np.int16), CAM)

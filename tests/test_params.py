@@ -1,0 +1,56 @@
+"""Study files: the committed ones load; bad ones fail with one error naming the key."""
+import math
+
+import pytest
+import yaml
+
+from monolib import paths
+from monolib.params import StudyError, load_study
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in paths.PARAMS.glob("*.yaml")))
+def test_committed_studies_load(name):
+    s = load_study(name, check_files=name in ("smoke", "quick"))
+    assert s.name == name or s.path.endswith(f"{name}.yaml")
+
+
+def test_quick_is_the_papers_protocol():
+    s = load_study("quick")
+    assert (s.protocol.settings, s.protocol.frames, s.protocol.queries, s.protocol.positives) == (16, 41, 35, 6)
+    assert s.thresholds == [1.0, 2.0, 5.0, 10.0, math.inf]
+    assert len(s.scenarios) == 4 and len(s.seeds) >= 3
+
+
+def write(tmp_path, change):
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    change(data)
+    p = tmp_path / "study.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+@pytest.mark.parametrize("change, key", [
+    (lambda d: d.update(colour=1), "colour: unknown key"),
+    (lambda d: d["dataset"].update(widht=3), "dataset.widht: unknown key"),
+    (lambda d: d["dataset"].update(width="big"), "dataset.width: expected an integer"),
+    (lambda d: d["protocol"].update(queries=99), "protocol.queries"),
+    (lambda d: d["scenarios"]["s3"].update(depth="midas"), "scenarios.s3.depth"),
+    (lambda d: d.update(thresholds=[-1]), "thresholds"),
+    (lambda d: d.update(methods=["magic"]), "methods: unknown method 'magic'"),
+    (lambda d: d["perception"]["depth"][0].update(checkpoint="/nope.pt", backbone="resnet50"), "perception.depth\\[0\\].checkpoint"),
+])
+def test_bad_study_names_the_key(tmp_path, change, key):
+    with pytest.raises(StudyError, match=key):
+        load_study(write(tmp_path, change))
+
+
+def test_unknown_study_lists_the_known_ones():
+    with pytest.raises(StudyError, match="smoke"):
+        load_study("no_such_study")
+
+
+def test_missing_data_folder_names_the_key(tmp_path):
+    p = tmp_path / "study.yaml"
+    p.write_text((paths.PARAMS / "published.yaml").read_text().replace("runs/published_graphs", str(tmp_path / "nope")))
+    with pytest.raises(StudyError, match="graphs_root: folder not found"):
+        load_study(p)

@@ -1,0 +1,259 @@
+"""Perception: DeepLabV3 and the LeReS-style depth net learn, the prediction cache round-trips, degenerate frames
+(all-NaN depth, no labelled pixel) pass through evaluation and the graph-stage readers, and a re-run does no work.
+
+Most tests use a tiny hand-made dataset in the Hypersim layout (`make_tiny_dataset`) under a temporary `runs/`;
+the last one uses the real smoke study (rendered by `monolib.synth`) and is skipped when the renderer is absent.
+"""
+from __future__ import annotations
+
+import csv
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from monolib import io, paths
+from monolib.params import load_study
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*canonical 60-degree camera")
+
+H, W = 48, 64
+CLASSES = {1: (150, 140, 130), 2: (90, 60, 40), 5: (200, 40, 40), 7: (40, 160, 60), 11: (40, 60, 200)}
+
+
+def make_tiny_dataset(root: Path, train: int = 4, test: int = 2, frames: int = 6, seed: int = 0) -> None:
+    """A Hypersim-layout folder: wall (1) over floor (2) with a few coloured boxes (5, 7, 11), depth from a room.
+
+    The first test frame has NaN depth everywhere and the second one no labelled pixel.
+    """
+    rng = np.random.default_rng(seed)
+    rows = []
+    names = [(f"ai_001_{i + 1:03d}", "train") for i in range(train)] + [(f"ai_002_{i + 1:03d}", "test") for i in range(test)]
+    for s, (setting, part) in enumerate(names):
+        for k in range(frames):
+            sem = np.ones((H, W), np.int16)
+            horizon = int(rng.integers(H // 3, 2 * H // 3))
+            sem[horizon:] = 2
+            wall = 2.0 + 2.0 * rng.random()
+            yy = np.arange(H)[:, None].repeat(W, 1).astype(np.float32)
+            depth = np.full((H, W), wall, np.float32)
+            floor = (yy - horizon + 1.0) / (H - horizon + 1.0)
+            depth[horizon:] = (wall / (1.0 + 2.0 * floor))[horizon:]
+            for cls in (5, 7, 11):
+                h0, w0 = int(rng.integers(6, 16)), int(rng.integers(8, 20))
+                r0, c0 = int(rng.integers(0, H - h0)), int(rng.integers(0, W - w0))
+                sem[r0 : r0 + h0, c0 : c0 + w0] = cls
+                depth[r0 : r0 + h0, c0 : c0 + w0] = np.minimum(depth[r0 : r0 + h0, c0 : c0 + w0], 0.6 * wall)
+            col = np.zeros((H, W, 3), np.float32)
+            for cls, rgb in CLASSES.items():
+                col[sem == cls] = np.array(rgb, np.float32) / 255.0
+            col = col * (0.5 + 0.5 * rng.random()) + rng.normal(0, 0.02, col.shape).astype(np.float32)
+            col = np.clip(col, 0, 1) ** 2.2
+            if part == "test" and s == train and k == 0:
+                depth[:] = np.nan
+            if part == "test" and s == train and k == 1:
+                sem[:] = -1
+            base = root / setting / "images"
+            io.write_h5(base / "scene_cam_00_final_hdf5" / f"frame.{k:04d}.color.hdf5", col.astype(np.float16), 1)
+            geo = base / "scene_cam_00_geometry_hdf5"
+            io.write_h5(geo / f"frame.{k:04d}.depth_meters.hdf5", depth.astype(np.float16), 1)
+            io.write_h5(geo / f"frame.{k:04d}.semantic.hdf5", sem, 1)
+            io.write_h5(geo / f"frame.{k:04d}.render_entity_id.hdf5", np.where(sem == -1, 0, 1).astype(np.int32), 1)
+            rows.append([setting, "cam_00", k, "True", "", part])
+    with open(root / "metadata_images_split_scene_v1.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["scene_name", "camera_name", "frame_id", "included_in_public_release", "exclude_reason", "split_partition_name"])
+        w.writerows(rows)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    root = tmp_path_factory.mktemp("tiny_hypersim")
+    make_tiny_dataset(root)
+    return root
+
+
+@pytest.fixture
+def tiny_study(tiny, tmp_path, monkeypatch):
+    """The smoke study pointed at the tiny dataset, tiny networks, runs/ and figures/ in a temporary folder."""
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
+    s = load_study("smoke")
+    s.dataset.source, s.dataset.root = "hypersim", str(tiny)
+    s.dataset.width, s.dataset.height, s.dataset.train_frames_per_setting = W, H, 6
+    s.protocol.settings, s.protocol.frames, s.protocol.queries, s.protocol.positives = 2, 6, 4, 2
+    s.perception.threads = 1
+    seg = s.perception.segmentation
+    seg.epochs, seg.batch_size, seg.train_height, seg.train_width, seg.val_settings = 2, 6, H, W, 1
+    for d in s.perception.depth:
+        d.epochs, d.batch_size, d.train_height, d.train_width, d.val_settings, d.decoder_width = 2, 6, H, W, 1, 16
+    return s
+
+
+def _frames(study, val=1):
+    from monolib.dataset import open_dataset, select_frames
+
+    return select_frames(study, open_dataset(study), val)
+
+
+def _falls(losses):
+    k = max(2, len(losses) // 4)
+    return float(np.mean(losses[-k:])) < float(np.mean(losses[:k]))
+
+
+def test_segmentation_loss_falls(tiny_study):
+    from monolib import segmentation
+
+    torch.set_num_threads(1)
+    spec = tiny_study.perception.segmentation
+    spec.epochs, spec.lr = 12, 3e-3
+    sel = _frames(tiny_study)
+    losses = []
+    model, hist = segmentation.train(spec, sel.train, [], seed=0, progress=False,
+                                     step_callback=lambda step, loss: losses.append(loss))
+    assert len(losses) >= 10 and _falls(losses), losses
+    pred = segmentation.predict(model, np.stack([f.rgb for f in sel.test[:2]]))
+    assert pred.dtype == np.int16 and pred.shape == (2, H, W) and pred.min() >= 1 and pred.max() <= 40
+
+
+def test_depth_loss_falls(tiny_study):
+    from monolib import depth
+
+    torch.set_num_threads(1)
+    spec = tiny_study.perception.depth[0]
+    spec.epochs, spec.lr = 12, 3e-3
+    sel = _frames(tiny_study)
+    losses = []
+    model, hist = depth.train(spec, sel.train, [], seed=0, progress=False,
+                              step_callback=lambda step, loss: losses.append(loss))
+    assert len(losses) >= 10 and _falls(losses), losses
+    pred = depth.predict(model, np.stack([f.rgb for f in sel.test[:2]]))
+    assert pred.dtype == np.float32 and pred.shape == (2, H, W) and np.isfinite(pred).all() and (pred > 0).all()
+
+
+def test_depth_loss_masks_nan():
+    from monolib.depth import depth_loss
+
+    pred = torch.zeros(2, 8, 8, requires_grad=True)
+    gt = torch.full((2, 8, 8), float("nan"))
+    gt[1, :4] = 2.0
+    loss = depth_loss(pred, gt)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(pred.grad).all()
+    assert float(depth_loss(pred, torch.full((2, 8, 8), float("nan")))) == 0.0
+
+
+def test_metrics_on_degenerate_frames():
+    from monolib.perception import evaluate_depth, evaluate_segmentation
+
+    gt = np.array([[1, 2], [2, -1]], np.int16)
+    empty = np.full((2, 2), -1, np.int16)
+    s = evaluate_segmentation([(gt, gt), (empty, gt), (None, gt)])
+    assert s["pixel_accuracy"] == 1.0 and s["miou"] == 1.0 and s["pixels"] == 3
+    nan = np.full((2, 2), np.nan, np.float32)
+    d = np.array([[1.0, 2.0], [np.nan, 4.0]], np.float32)
+    m = evaluate_depth([(nan, d), (d, d * 1.1)])
+    assert m["frames"] == 1 and np.isclose(m["abs_rel"], 0.1, atol=1e-5) and m["delta1"] == 1.0
+    assert np.isclose(m["median_ratio"], 1.1, atol=1e-5)
+    assert np.isnan(evaluate_depth([(nan, d)])["abs_rel"])
+
+
+def test_run_caches_and_round_trips(tiny_study):
+    from monolib import depth, perception, segmentation
+
+    table = perception.run(tiny_study, progress=False)
+    assert set(table.attrs["status"].values()) == {"done"}
+    assert np.isfinite(table["value"]).all(), table
+    assert (paths.figures_dir("smoke") / "perception.csv").is_file()
+    sel = _frames(tiny_study)
+    frames = sel.all()
+    seg_name = tiny_study.perception.segmentation.name
+    d_name = tiny_study.perception.depth[0].name
+    # every frame is cached; the cache equals what the saved model predicts (write -> read equals)
+    model = segmentation.load_model(tiny_study.perception.segmentation, perception.model_dir(tiny_study, seg_name) / "model.pt")
+    fresh = segmentation.predict(model, np.stack([f.rgb for f in frames[:4]]))
+    read = perception.semantic_source(tiny_study, seg_name)
+    assert all(np.array_equal(read(f), p) for f, p in zip(frames[:4], fresh))
+    dmodel = depth.load_model(tiny_study.perception.depth[0], perception.model_dir(tiny_study, d_name) / "model.pt")
+    dfresh = depth.predict(dmodel, np.stack([f.rgb for f in frames[:4]]))
+    dread = perception.depth_source(tiny_study, d_name)
+    assert all(np.allclose(dread(f), p, rtol=1e-5) for f, p in zip(frames[:4], dfresh))
+    # the degenerate test frames (all-NaN depth, no labelled pixel) read fine from every source
+    nan_frame, unlabelled = sel.test[0], sel.test[1]
+    assert np.isnan(perception.depth_source(tiny_study, "gt")(nan_frame)).all()
+    assert (perception.semantic_source(tiny_study, "gt")(unlabelled) == -1).all()
+    for f in (nan_frame, unlabelled):
+        assert np.isfinite(dread(f)).all() and read(f).shape == (H, W)
+    # a missing prediction is one clear error naming the file
+    path = perception.prediction_path(tiny_study, seg_name, frames[0])
+    path.unlink()
+    with pytest.raises(FileNotFoundError, match=str(path.name)):
+        read(frames[0])
+    io.write_h5(path, fresh[0])
+    # a second run does no work: status cached, no file touched
+    files = sorted(p for p in paths.RUNS.rglob("*") if p.is_file()) + sorted(paths.FIGURES.rglob("*.csv"))
+    before = {p: os.stat(p).st_mtime_ns for p in files}
+    again = perception.run(tiny_study, progress=False)
+    assert set(again.attrs["status"].values()) == {"cached"}
+    assert {p: os.stat(p).st_mtime_ns for p in files} == before
+    # a GCN / scenario / threshold change keeps the cache keys
+    keys = [perception.model_key(tiny_study, n) for n in tiny_study.model_names()]
+    tiny_study.gcn.epochs, tiny_study.thresholds = 99, [3.0]
+    assert keys == [perception.model_key(tiny_study, n) for n in tiny_study.model_names()]
+
+
+def test_figures(tiny_study):
+    import matplotlib
+
+    matplotlib.use("agg")
+    from monolib import perception
+
+    perception.run(tiny_study, progress=False)
+    for fn, name in [(perception.plot_training, "perception_training.png"),
+                     (perception.plot_depth_examples, "fig3_depth.png"),
+                     (perception.plot_semantic_examples, "fig4_semantics.png")]:
+        fn(tiny_study)
+        assert (paths.figures_dir("smoke") / name).stat().st_size > 1000
+
+
+def test_pretrained_offline_error(tiny_study, monkeypatch, tmp_path):
+    from monolib import segmentation
+
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    spec = tiny_study.perception.segmentation
+    spec.pretrained = True
+    with pytest.raises(segmentation.PretrainedUnavailable, match="unavailable offline"):
+        segmentation.build_model(spec)
+
+
+def test_leres_structure_loads_its_own_keys(tmp_path):
+    """A checkpoint in AdelaiDepth's layout ({'depth_model': {'module.depth_model.*': ...}}) loads strictly."""
+    from monolib import depth
+
+    torch.manual_seed(0)
+    src = depth.LeReSDepthModel("resnet18", 16, "leres", None, (64, 64))
+    ckpt = {"depth_model": {f"module.depth_model.{k}": v for k, v in src.state_dict().items()}}
+    torch.save(ckpt, tmp_path / "res.pth")
+    dst = depth.LeReSDepthModel("resnet18", 16, "leres", None, (64, 64))
+    depth.load_adelai_checkpoint(dst, tmp_path / "res.pth")
+    assert all(torch.equal(a, b) for a, b in zip(src.state_dict().values(), dst.state_dict().values()))
+    bad = depth.LeReSDepthModel("resnet18", 32, "leres", None, (64, 64))
+    with pytest.raises(ValueError, match="does not match"):
+        depth.load_adelai_checkpoint(bad, tmp_path / "res.pth")
+
+
+@pytest.mark.slow
+def test_smoke_study_rerun_is_cached(capsys):
+    """perception.run on the real smoke study, twice: the second run trains and predicts nothing."""
+    pytest.importorskip("monolib.synth")
+    from monolib import perception
+
+    study = load_study("smoke")
+    perception.run(study, progress=False)
+    capsys.readouterr()
+    again = perception.run(study, progress=False)
+    out = capsys.readouterr().out
+    assert set(again.attrs["status"].values()) == {"cached"}
+    assert f"perception: {perception.model_tag(study, 'deeplab')} cached" in out and "nothing to do" in out
