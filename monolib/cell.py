@@ -3,10 +3,11 @@
 `notebooks/ablation_cell.ipynb` calls `run_cell`; so do the tests. A cell writes into its folder:
 `cell.json` (written last: its presence means the cell is complete), `rankings.csv` (top 10 per query),
 `protocol.csv` (which test frames were queries / positives), `embeddings.npy` and, for trained methods,
-`history.csv`.
+`history.csv` and `model.pt` (the encoder's weights, used by `monolib index`).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -37,9 +38,11 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
              force: bool = False) -> dict:
     """Run one cell and return its `cell.json` content (read back when the cell is already complete)."""
     threshold = float(threshold)
-    if method not in methods.METHODS:
-        raise StudyError(f"method {method!r}: unknown (known: {', '.join(sorted(methods.METHODS))})")
-    if methods.kind(method) == "graph" and scenario not in study.scenarios:
+    if method not in methods.METHODS and method not in study.variants:
+        known = sorted(methods.METHODS) + sorted(study.variants)
+        raise StudyError(f"method {method!r}: unknown (known: {', '.join(known)})")
+    kind = methods.kind(method, study)
+    if kind == "graph" and scenario not in study.scenarios:
         raise StudyError(f"scenario {scenario!r}: not in {study.path} (scenarios: {', '.join(study.scenarios)})")
     if not threshold > 0:
         raise StudyError(f"threshold {threshold}: expected a distance in metres > 0 or inf")
@@ -53,16 +56,19 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     history = None
 
     t = time.perf_counter()
-    if methods.kind(method) == "graph":
+    if kind == "graph":
+        spec = study.gcn_spec(method)
         graphs = scenegraphs.load(study, scenario)
-        split = {k: [scenegraphs.at_threshold(g, threshold) for g in v] for k, v in graphs.items()}
+        both = spec.edges == "both"
+        split = {k: [scenegraphs.at_threshold(g, threshold, both) for g in v] for k, v in graphs.items()}
         timings["graphs_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        result = gcn.train(split["train"], split["val"], study.gcn, seed=seed, threads=study.threads)
+        result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads)
         history = pd.DataFrame(result.history)
         timings["train_s"] = time.perf_counter() - t
         t = time.perf_counter()
         emb = gcn.embed(result.model, split["test"]).numpy()
+        state = result.model.state_dict()
         test = split["test"]
         frames, settings = [g.frame for g in test], [g.setting for g in test]
         extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history),
@@ -76,9 +82,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         sel = dataset.select_frames(study, ds, study.gcn.val_settings)
         timings["graphs_s"] = 0.0
         t = time.perf_counter()
-        emb = np.stack([getattr(baselines, method)(f.rgb) for f in sel.test])
+        emb, extra, history, state = baselines.embed(method, study, sel, seed)
         frames, settings = [f.key for f in sel.test], [f.setting for f in sel.test]
-        extra = {}
     timings["embed_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -87,7 +92,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
 
     sc = study.scenarios.get(scenario)
     record = {
-        "method": method, "scenario": scenario, "threshold": threshold if math.isfinite(threshold) else "inf",
+        "method": method, "kind": kind,
+        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario, "threshold": threshold if math.isfinite(threshold) else "inf",
         "seed": int(seed), "study": study.name, "study_file": study.path,
         "scenario_label": sc.label if sc else "RGB only (no graph)",
         "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
@@ -102,5 +108,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
             np.save(f, np.asarray(emb, dtype=np.float32))
     if history is not None:
         write_text(folder / "history.csv", history.to_csv(index=False))
+    if state is not None:
+        with atomic_path(folder / "model.pt") as tmp:
+            torch.save(state, tmp)
     write_json(folder / "cell.json", record)  # last: marks the cell complete
     return record

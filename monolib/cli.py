@@ -1,5 +1,5 @@
 """The `monolib` command: `monolib study STUDY`, `monolib synth STUDY --out DIR`, `monolib perception STUDY`,
-`monolib bench`."""
+`monolib index STUDY --out DB`, `monolib localize IMAGE... --db DB`, `monolib bench`."""
 from __future__ import annotations
 
 import argparse
@@ -22,11 +22,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output folder")
     p = sub.add_parser("perception", help="train, evaluate and cache the perception models of a study")
     p.add_argument("study")
-    p = sub.add_parser("bench", help="benchmarks: rendering, graph construction")
+    p = sub.add_parser("index", help="store the embeddings of a study's test frames as a localization database")
+    p.add_argument("study")
+    p.add_argument("--out", required=True, help="database folder")
+    p.add_argument("--method", default=None, help="graph method whose best predicted-input cell encodes (default: any)")
+    p = sub.add_parser("localize", help="find the setting of RGB images (PNG/JPEG) in a database")
+    p.add_argument("images", nargs="+")
+    p.add_argument("--db", required=True)
+    p.add_argument("--k", type=int, default=5)
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p = sub.add_parser("bench", help="benchmarks: rendering, per-frame stages, graph construction, kNN")
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=192)
+    p.add_argument("--study", default="quick", help="the study whose networks and resolution are timed")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    for noisy in ("papermill", "traitlets", "nbclient"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
         if args.command == "study":
             from monolib import study as study_mod
@@ -43,13 +55,33 @@ def main(argv: list[str] | None = None) -> int:
             from monolib import perception
 
             print(perception.run(load_study(args.study)).to_string(index=False))
+        elif args.command == "index":
+            from monolib import localize
+
+            out = localize.build_index(load_study(args.study), args.out, args.method)
+            print(f"database: {out}")
+        elif args.command == "localize":
+            import json
+
+            from monolib import localize
+
+            results = localize.localize(args.images, args.db, args.k)
+            print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
         elif args.command == "bench":
             from monolib import bench
 
-            bench.run(args.width, args.height)
+            bench.run(args.width, args.height, args.study)
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:
+        from monolib.io import DataFileError
+        from monolib.localize import LocalizeError
+
+        if isinstance(exc, (LocalizeError, DataFileError)):
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        raise
     return 0
 
 

@@ -18,30 +18,32 @@ NODE_FEATURES = 4  # NYU40 id, median R, G, B
 
 
 def grouped_median(labels: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-label median of each column of `values` (N, C): returns (unique labels (L,), medians (L, C)).
+    """Per-label median of each row of `values` (C, N): returns (unique labels (L,), medians (L, C)).
 
-    `labels` are small non-negative integers (NYU40 ids). Each column is mapped into [rank, rank + 0.5] of its
-    label, so one sort of all columns at once groups by label and orders by value: no loop over labels or pixels.
+    `labels` (N,) are small non-negative integers (NYU40 ids). Each value is mapped into [rank, rank + 0.5] of its
+    label, so one sort of all rows at once groups by label and orders by value: no loop over labels or pixels.
     Median of an even count = mean of the two middle values (as `numpy.median`).
     """
     labels = np.asarray(labels, dtype=np.int64)
-    values = np.asarray(values, dtype=np.float64)
-    if values.ndim == 1:
-        values = values[:, None]
+    values = np.atleast_2d(np.asarray(values, dtype=np.float64))
     if len(labels) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, values.shape[1]))
+        return np.zeros(0, np.int64), np.zeros((0, values.shape[0]))
     counts = np.bincount(labels)
     uniq = np.flatnonzero(counts)
     n = counts[uniq]
-    rank_of = np.zeros(len(counts), np.int64)
+    rank_of = np.zeros(len(counts), np.float64)
     rank_of[uniq] = np.arange(len(uniq))
-    low = values.min(axis=0)
-    span = values.max(axis=0) - low
+    low = values.min(axis=1, keepdims=True)
+    span = values.max(axis=1, keepdims=True) - low
     span[span == 0] = 1.0
-    keys = np.sort(((values - low) / span * 0.5 + rank_of[labels][:, None]).T, axis=1)
-    starts = np.concatenate([[0], np.cumsum(n)[:-1]])
-    mid = 0.5 * (keys[:, starts + (n - 1) // 2] + keys[:, starts + n // 2]).T - np.arange(len(uniq))[:, None]
-    return uniq, mid * 2.0 * span + low
+    scale = 0.5 / span
+    keys = values - low
+    keys *= scale
+    keys += rank_of[labels]
+    keys.sort(axis=1)
+    starts = np.cumsum(n) - n
+    mid = 0.5 * (keys[:, starts + (n - 1) // 2] + keys[:, starts + n // 2]) - np.arange(len(uniq))
+    return uniq, (mid / scale + low).T
 
 
 def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -53,18 +55,24 @@ def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray,
     semantic = np.asarray(semantic)
     if depth.shape != semantic.shape:
         raise ValueError(f"depth {depth.shape} and semantic {semantic.shape} differ in shape")
-    valid = np.isfinite(depth) & (depth > 0) & (semantic >= 1)
-    if not valid.any():
+    if rgb is not None and rgb.shape[:2] != depth.shape:
+        raise ValueError(f"rgb {rgb.shape} and depth {depth.shape} differ in size")
+    with np.errstate(invalid="ignore"):
+        valid = (depth > 0) & (semantic >= 1)  # NaN > 0 is False
+    idx = np.flatnonzero(valid)
+    if len(idx) == 0:
         return np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32)
-    points = camera.backproject_masked(depth, valid)
-    labels = semantic[valid].astype(np.int64)
+    rays = camera.rays(*depth.shape).reshape(-1, 3)[idx]
+    z = depth.reshape(-1)[idx] / -rays[:, 2]
+    values = np.empty((6, len(idx)), np.float64)
+    values[:3] = rays.T * z
     if rgb is None:
-        colours = np.zeros((len(labels), 3), np.float64)
+        values[3:] = 0.0
     else:
-        if rgb.shape[:2] != depth.shape:
-            raise ValueError(f"rgb {rgb.shape} and depth {depth.shape} differ in size")
-        colours = rgb[valid].astype(np.float64) / (255.0 if rgb.dtype == np.uint8 else 1.0)
-    uniq, med = grouped_median(labels, np.concatenate([points, colours], axis=1))
+        values[3:] = rgb.reshape(-1, 3)[idx].T
+        if rgb.dtype == np.uint8:
+            values[3:] /= 255.0
+    uniq, med = grouped_median(semantic.reshape(-1)[idx], values)
     x = np.concatenate([uniq[:, None].astype(np.float64), med[:, 3:6]], axis=1).astype(np.float32)
     return x, med[:, :3].astype(np.float32)
 

@@ -9,8 +9,13 @@ from __future__ import annotations
 METHODS: dict[str, tuple[str, str]] = {
     "gcn": ("graph", "the paper's encoder: 5 GCNConv(128) + Linear(64) + global max pool, triplet loss"),
     "color_hist": ("image", "global HSV colour histogram, no training (calibration baseline)"),
+    "orb_bow": ("image", "ORB keypoints + bag of visual words (k-means on training images), tf-idf, L2-normalised"),
+    "image_triplet": ("image", "small CNN on the RGB frame, trained from scratch with the GCN's triplet loss and budget"),
 }
 
 
-def kind(method: str) -> str:
+def kind(method: str, study=None) -> str:
+    """'graph' or 'image'; a study's `variants:` are graph methods too."""
+    if study is not None:
+        return study.method_kind(method)
     return METHODS[method][0]

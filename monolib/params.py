@@ -86,6 +86,8 @@ class Scenario:
     semantic: str = "gt"                     # gt or the segmentation model name
     label: str = ""
     depth_scale: float = 1.0                 # multiply the depth source (controlled depth-scale experiments)
+    thresholds: Optional[list[float]] = None # run this scenario at these thresholds only (default: the study's)
+    in_tables: bool = True                   # shown in Tables 1-2 (False: a controlled experiment with its own figure)
 
 
 @dataclass
@@ -100,6 +102,24 @@ class GCNSpec:
     margin: float = 1.0
     patience: int = 10
     val_settings: int = 4                    # training settings held out for early stopping
+    # encoder choices (the defaults are the paper's; `variants:` in a study file change them per method)
+    conv: str = "gcn"                        # gcn | gine (reads edge lengths) | gatv2 (reads edge lengths)
+    edges: str = "both"                      # both directions, or "upper" (i < j only, as the published code)
+    linear: bool = True                      # Linear(hidden -> out) after the convs; False: last conv maps to out
+    label: str = "raw"                       # NYU40 id as a raw number | "embedding" (learned, 16-d) | "onehot"
+    colour: str = "raw"                      # raw | "standardised" (training-set mean and std)
+    edge_weight: str = "none"                # none | "inverse" (GCNConv weight 1 / (1 + length))
+    pooling: str = "max"                     # max | "meanmax" (mean and max concatenated)
+    mining: str = "random"                   # the paper's random triplets | "batch_hard" (hardest in the batch)
+
+
+@dataclass
+class Variant:
+    """A graph encoder method that changes some of the paper's choices (`gcn:` keys), on some cells."""
+    gcn: dict = field(default_factory=dict)  # GCNSpec fields to override
+    scenarios: Optional[list[str]] = None    # default: every scenario in the tables
+    thresholds: Optional[list[float]] = None # default: the study's thresholds
+    description: str = ""
 
 
 @dataclass
@@ -127,6 +147,7 @@ class Study:
     seeds: list[int] = field(default_factory=lambda: [0])
     methods: list[str] = field(default_factory=lambda: ["gcn"])
     gcn: GCNSpec = field(default_factory=GCNSpec)
+    variants: dict[str, Variant] = field(default_factory=dict)
     protocol: Protocol = field(default_factory=Protocol)
     path: Optional[str] = None               # the file it was loaded from (set by `load_study`)
 
@@ -144,6 +165,22 @@ class Study:
     @property
     def metadata_dir(self) -> Optional[Path]:
         return resolve_path(self.dataset.metadata_dir, self.path) if self.dataset.metadata_dir else None
+
+    def method_kind(self, method: str) -> str:
+        from monolib.methods import METHODS
+
+        if method in self.variants:
+            return "graph"
+        return METHODS[method][0]
+
+    def gcn_spec(self, method: str) -> GCNSpec:
+        """The encoder spec of a graph method: the study's `gcn:` with the variant's overrides."""
+        if method in self.variants:
+            return dataclasses.replace(self.gcn, **self.variants[method].gcn)
+        return self.gcn
+
+    def graph_methods(self) -> list[str]:
+        return [m for m in self.methods if m == "gcn"] + list(self.variants)
 
     def model_names(self) -> list[str]:
         return [self.perception.segmentation.name] + [d.name for d in self.perception.depth]
@@ -196,6 +233,10 @@ def _convert(value: Any, tp, where: str) -> Any:
         if not isinstance(value, list):
             raise StudyError(f"{where}: expected a list, got {value!r}")
         return [_convert(v, args[0], f"{where}[{i}]") for i, v in enumerate(value)]
+    if tp is dict:
+        if not isinstance(value, dict):
+            raise StudyError(f"{where}: expected a mapping, got {value!r}")
+        return value
     if origin is dict:
         if not isinstance(value, dict) or not value:
             raise StudyError(f"{where}: expected a non-empty mapping, got {value!r}")
@@ -305,8 +346,26 @@ def _check(study: Study, check_files: bool = True) -> None:
     for m in study.methods:
         if m not in METHODS:
             bad("methods", f"unknown method {m!r} (known: {', '.join(sorted(METHODS))})")
-    if study.gcn.layers < 1 or study.gcn.epochs < 1:
-        bad("gcn.layers", "layers and epochs must be at least 1")
+    choices = {"conv": ("gcn", "gine", "gatv2"), "edges": ("both", "upper"), "label": ("raw", "embedding", "onehot"),
+               "colour": ("raw", "standardised"), "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax"),
+               "mining": ("random", "batch_hard")}
+    specs = {"gcn": study.gcn}
+    for vname, v in study.variants.items():
+        if vname in METHODS:
+            bad(f"variants.{vname}", f"a variant cannot reuse the name of a built-in method")
+        try:
+            specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn}, f"variants.{vname}.gcn")
+        except StudyError as exc:
+            raise StudyError(str(exc).replace("variants." + vname + ".gcn.", f"variants.{vname}.gcn.")) from None
+        for sc in v.scenarios or []:
+            if sc not in study.scenarios:
+                bad(f"variants.{vname}.scenarios", f"unknown scenario {sc!r}")
+    for where, g in specs.items():
+        for key, allowed in choices.items():
+            if getattr(g, key) not in allowed:
+                bad(f"{where}.{key}", f"expected one of {', '.join(allowed)}, got {getattr(g, key)!r}")
+        if g.layers < 1 or g.epochs < 1:
+            bad(f"{where}.layers", "layers and epochs must be at least 1")
 
 
 def find_study(study: str | Path) -> Path:

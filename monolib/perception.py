@@ -365,7 +365,7 @@ def plot_depth_examples(study: Study, n: int = 3, save: bool = True, dataset=Non
         axes[r, 0].set_title("RGB" if r == 0 else "", fontsize=8)
         for c, ((label, _), m) in enumerate(zip(srcs, maps)):
             ax = axes[r, 1 + c]
-            im = ax.imshow(m, cmap="magma_r", vmin=0, vmax=vmax)
+            ax.imshow(m, cmap="magma_r", vmin=0, vmax=vmax)
             if r == 0:
                 ax.set_title(f"{label} (m)", fontsize=8)
             ok = np.isfinite(m)
@@ -377,7 +377,7 @@ def plot_depth_examples(study: Study, n: int = 3, save: bool = True, dataset=Non
             ax2.imshow(norm, cmap="magma_r", vmin=0, vmax=1)
             if r == 0:
                 ax2.set_title(f"{label} (0..1)", fontsize=8)
-        fig.colorbar(im, ax=axes[r, len(srcs)], fraction=0.046, pad=0.02)
+        axes[r, 0].set_ylabel(f"{f.setting}\ncolour 0-{vmax:.1f} m", fontsize=7)
     for a in axes.ravel():
         a.set_xticks([]), a.set_yticks([])
     if save:
@@ -406,3 +406,16 @@ def plot_semantic_examples(study: Study, n: int = 3, save: bool = True, dataset=
     if save:
         io.save_figure(fig, paths.figures_dir(study.name) / "fig4_semantics.png")
     return fig
+
+
+def load_trained(study: Study, name: str):
+    """The trained model `name` of the study from its cache (for the localizer); one clear error when missing."""
+    from monolib import depth as dep
+    from monolib import segmentation as seg
+
+    spec, task = _spec(study, name)
+    path = model_dir(study, name) / "model.pt"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: model {name!r} is not trained; run `monolib perception {study.name}` first")
+    model = (seg if task == "segmentation" else dep).load_model(spec, path)
+    return model.eval()

@@ -307,15 +307,281 @@ def paper_tables() -> pd.DataFrame:
     return df
 
 
+# ---- uncertainty: bootstrap over test settings, queries and seeds ---------------------------------------------
+#
+# Every number of the tables is a mean over seeds of a mean over the queries of the test settings. Its 95 %
+# interval comes from a hierarchical bootstrap over the three sources of variation: per resample, the seeds are
+# drawn with replacement, the settings are drawn with replacement, and within each drawn (seed, setting) its
+# queries are drawn with replacement; the statistic is the mean of the drawn per-query values (recall@k: a hit
+# indicator x 100; precision@k: the own-setting share of the top k x 100). The interval is the 2.5 and 97.5
+# percentiles over B resamples.
+#
+# The resample *indices* are one fixed set per study (`Bootstrap`, numpy seed 0): uniform numbers drawn once for
+# [B, seed slot], [B, setting slot] and [B, seed slot, setting slot, query slot], turned into indices by
+# floor(u * n). Every cell group of a study is resampled with the same numbers, and since the protocol draw
+# depends only on the seed (same queries in every method, scenario and threshold of a seed), two groups resampled
+# with the same numbers are paired: the difference of their resampled means is the paired bootstrap of the
+# difference (`paired_difference` joins the per-query values on seed, setting and query first, so a group against
+# itself gives exactly 0).
+
+N_BOOT = 1000
+BOOT_SEED = 0
+QUERY_KEYS = ["method", "scenario", "threshold", "seed", "setting", "query"]
+GROUP_KEYS = ["method", "scenario", "threshold"]
+INTERVAL_COLUMNS = ["method", "scenario", "threshold", "metric", "k", "mean", "ci_lo", "ci_hi", "n_seeds"]
+DAGGER = "†"
+STAR = "*"
+
+
+def metric_columns(recall_k, precision_k) -> list[str]:
+    return [f"recall@{int(k)}" for k in recall_k] + [f"precision@{int(k)}" for k in precision_k]
+
+
+def _split_metric(col: str) -> tuple[str, int]:
+    metric, _, k = col.partition("@")
+    return metric, int(k)
+
+
+def per_query_values(rankings: pd.DataFrame, recall_k, precision_k) -> pd.DataFrame:
+    """One row per query of a cell: ``query, setting`` and one column per metric (``recall@1``: 100 when a frame
+    of the query's setting is in the top k, else 0; ``precision@6``: 100 x own-setting frames in the top k / k).
+    Their means over queries are `recompute_metrics` (the paper's definitions)."""
+    queries, hits = hit_matrix(rankings)
+    ks = [int(k) for k in recall_k] + [int(k) for k in precision_k]
+    if ks and max(ks) > hits.shape[1]:
+        raise ValueError(f"rankings: k={max(ks)} needs the top {max(ks)}, the rankings hold the top {hits.shape[1]}")
+    found = np.cumsum(hits, axis=1)
+    setting = rankings.drop_duplicates("query").set_index("query")["query_setting"].reindex(queries)
+    out = pd.DataFrame({"query": np.asarray(queries, dtype=object), "setting": setting.to_numpy(dtype=object)})
+    for k in recall_k:
+        out[f"recall@{int(k)}"] = 100.0 * (found[:, int(k) - 1] > 0)
+    for k in precision_k:
+        out[f"precision@{int(k)}"] = 100.0 * found[:, int(k) - 1] / int(k)
+    return out
+
+
+def _metric_cols(frame: pd.DataFrame) -> list[str]:
+    cols = [c for c in frame.columns if "@" in str(c)]
+    return sorted(cols, key=lambda c: (METRICS.index(_split_metric(c)[0]), _split_metric(c)[1]))
+
+
+def query_table(study_name: str) -> pd.DataFrame:
+    """Per-query values of every cell of a study: ``method, scenario, threshold, seed, setting, query`` and one
+    column per metric the cell recorded (see `per_query_values`), read from each cell's ``rankings.csv``."""
+    parts = []
+    for f in cell_files(study_name):
+        cell = io.read_json(f)
+        names = [n for n in cell.get("metrics", {}) if n.partition("@")[0] in METRICS and n.partition("@")[2].isdigit()]
+        rk = sorted(int(n.partition("@")[2]) for n in names if n.startswith("recall@"))
+        pk = sorted(int(n.partition("@")[2]) for n in names if n.startswith("precision@"))
+        try:
+            rankings = _read_rankings(f.parent)
+            depth = int(rankings["rank"].max()) if len(rankings) else 0
+            if any(k > depth for k in rk + pk):
+                log.warning("%s: the rankings hold the top %d: no interval for k > %d", f.parent, depth, depth)
+            q = per_query_values(rankings, [k for k in rk if k <= depth], [k for k in pk if k <= depth])
+        except (FileNotFoundError, ValueError, KeyError) as exc:
+            log.warning("%s: no per-query values (%s); its intervals are left out", f.parent, exc)
+            continue
+        q.insert(0, "method", str(cell["method"]))
+        q.insert(1, "scenario", str(cell["scenario"]))
+        q.insert(2, "threshold", _threshold(cell["threshold"]))
+        q.insert(3, "seed", int(cell["seed"]))
+        parts.append(q)
+    if not parts:
+        raise FileNotFoundError(f"{_cells_root(study_name)}: no cell with a readable rankings.csv")
+    df = pd.concat(parts, ignore_index=True)
+    df = df[QUERY_KEYS + _metric_cols(df)]
+    return _sort(df, QUERY_KEYS)
+
+
+class Bootstrap:
+    """The fixed resample of one study: ``n_boot`` draws of seeds, settings and queries (numpy seed `seed`).
+
+    Sized for at most `n_seeds` seeds, `n_settings` settings and `n_queries` queries per (seed, setting); a group
+    with fewer uses the first slots, so groups of the same shape are resampled with identical indices.
+    """
+
+    def __init__(self, n_seeds: int, n_settings: int, n_queries: int, n_boot: int = N_BOOT, seed: int = BOOT_SEED,
+                 chunk_elements: int = 2_000_000):
+        rng = np.random.default_rng(seed)
+        self.n_boot, self.shape = int(n_boot), (int(n_seeds), int(n_settings), int(n_queries))
+        self.u_seed = rng.random((self.n_boot, self.shape[0]))
+        self.u_setting = rng.random((self.n_boot, self.shape[1]))
+        self.u_query = rng.random((self.n_boot, *self.shape))
+        self.chunk_elements = int(chunk_elements)
+
+    @classmethod
+    def for_queries(cls, qv: pd.DataFrame, n_boot: int = N_BOOT, seed: int = BOOT_SEED) -> "Bootstrap":
+        """Sized for every group of a `query_table`."""
+        if qv.empty:
+            return cls(1, 1, 1, n_boot, seed)
+        n_seeds = int(qv.groupby(GROUP_KEYS)["seed"].nunique().max())
+        n_settings = int(qv.groupby(GROUP_KEYS + ["seed"])["setting"].nunique().max())
+        n_settings = max(n_settings, int(qv["setting"].nunique()))
+        n_queries = int(qv.groupby(GROUP_KEYS + ["seed", "setting"]).size().max())
+        return cls(n_seeds, n_settings, n_queries, n_boot, seed)
+
+    @staticmethod
+    def cube(frame: pd.DataFrame, cols: list[str], settings: Optional[list] = None) -> tuple[np.ndarray, np.ndarray]:
+        """(values [seed, setting, query slot, metric], counts [seed, setting]) of one group's per-query rows
+        (columns ``seed, setting, query`` and `cols`); seeds, settings and queries in sorted order."""
+        frame = frame.sort_values(["seed", "setting", "query"], kind="mergesort")
+        seeds = np.sort(frame["seed"].unique())
+        settings = sorted(frame["setting"].unique()) if settings is None else list(settings)
+        ri = np.searchsorted(seeds, frame["seed"].to_numpy())
+        si = pd.Index(settings).get_indexer(frame["setting"])
+        if (si < 0).any():
+            raise ValueError("cube: a row's setting is not in the given settings")
+        slot = frame.groupby(["seed", "setting"], sort=False).cumcount().to_numpy()
+        nq = np.zeros((len(seeds), len(settings)), dtype=np.intp)
+        np.add.at(nq, (ri, si), 1)
+        values = np.zeros((len(seeds), len(settings), int(nq.max()) if nq.size else 0, len(cols)))
+        values[ri, si, slot] = frame[cols].to_numpy(dtype=float)
+        return values, nq
+
+    def check(self, values: np.ndarray, offset: int = 0) -> None:
+        r, s, q = values.shape[:3]
+        if r > self.shape[0] or offset + s > self.shape[1] or q > self.shape[2]:
+            raise ValueError(f"bootstrap sized {self.shape} cannot resample a group of shape {(r, s, q)} "
+                             f"(setting offset {offset})")
+
+    @staticmethod
+    def observed(values: np.ndarray, nq: np.ndarray) -> np.ndarray:
+        """The mean per metric of every (seed, setting, query) value: the point estimate."""
+        valid = np.arange(values.shape[2]) < nq[..., None]
+        return np.einsum("rsqm,rsq->m", values, valid.astype(float)) / max(int(valid.sum()), 1)
+
+    def resample(self, values: np.ndarray, nq: np.ndarray, offset: int = 0) -> np.ndarray:
+        """[B, metric] resampled means (seeds, settings, then queries within each drawn (seed, setting), all with
+        replacement). `offset` shifts the setting slots used (independent draws for a second set of settings)."""
+        self.check(values, offset)
+        r, s, q, m = values.shape
+        out = np.empty((self.n_boot, m))
+        step = max(1, self.chunk_elements // max(1, r * s * max(q, 1) * m))
+        slots = np.arange(q)
+        for b0 in range(0, self.n_boot, step):
+            b1 = min(self.n_boot, b0 + step)
+            rs = np.minimum((self.u_seed[b0:b1, :r] * r).astype(np.intp), r - 1)                       # [b, R]
+            gs = np.minimum((self.u_setting[b0:b1, offset:offset + s] * s).astype(np.intp), s - 1)      # [b, S]
+            n = nq[rs[:, :, None], gs[:, None, :]]                                                     # [b, R, S]
+            qi = (self.u_query[b0:b1, :r, offset:offset + s, :q] * n[..., None]).astype(np.intp)       # [b, R, S, Q]
+            qi = np.clip(qi, 0, np.maximum(n[..., None] - 1, 0))
+            valid = (slots < n[..., None]).astype(float)
+            drawn = values[rs[:, :, None, None], gs[:, None, :, None], qi]                            # [b, R, S, Q, M]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[b0:b1] = np.einsum("brsqm,brsq->bm", drawn, valid) / valid.sum(axis=(1, 2, 3))[:, None]
+        return out
+
+    def interval(self, values: np.ndarray, nq: np.ndarray, offset: int = 0) -> dict[str, np.ndarray]:
+        """``{"mean", "ci_lo", "ci_hi", "boot"}`` per metric (percentiles 2.5 and 97.5 of the resampled means)."""
+        boot = self.resample(values, nq, offset)
+        lo, hi = np.nanpercentile(boot, [2.5, 97.5], axis=0)
+        return {"mean": self.observed(values, nq), "ci_lo": lo, "ci_hi": hi, "boot": boot}
+
+
+def _rows_of(qv: pd.DataFrame, method: str, scenario: str, threshold: float) -> pd.DataFrame:
+    return qv[(qv["method"] == method) & (qv["scenario"] == scenario) & (qv["threshold"] == threshold)]
+
+
+def _group_cols(frame: pd.DataFrame, cols: Optional[list[str]] = None) -> list[str]:
+    cols = _metric_cols(frame) if cols is None else cols
+    return [c for c in cols if c in frame.columns and frame[c].notna().all()]
+
+
+def intervals(qv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
+    """``intervals.csv``: per (method, scenario, threshold, metric, k) the mean and its 95 % bootstrap interval,
+    and the number of seeds (columns `INTERVAL_COLUMNS`)."""
+    rows = []
+    for (method, scenario, threshold), g in qv.groupby(GROUP_KEYS, sort=False):
+        cols = _group_cols(g)
+        if not cols:
+            continue
+        values, nq = boot.cube(g, cols)
+        iv = boot.interval(values, nq)
+        for j, c in enumerate(cols):
+            metric, k = _split_metric(c)
+            rows.append((method, scenario, float(threshold), metric, k, float(iv["mean"][j]), float(iv["ci_lo"][j]),
+                         float(iv["ci_hi"][j]), int(g["seed"].nunique())))
+    out = pd.DataFrame(rows, columns=INTERVAL_COLUMNS)
+    return _sort(out, SUMMARY_KEYS)
+
+
+def paired_difference(a: pd.DataFrame, b: pd.DataFrame, boot: Bootstrap,
+                      cols: Optional[list[str]] = None) -> pd.DataFrame:
+    """Paired bootstrap of mean(a) - mean(b) over the (seed, setting, query) triples the two share.
+
+    `a` and `b` are per-query rows (``seed, setting, query`` + metric columns), e.g. two cells groups of one
+    study. Returns one row per metric column: ``metric, k, diff, ci_lo, ci_hi, significant`` (the interval
+    excludes 0), and ``n_seeds``, ``n_queries`` of the shared rows.
+    """
+    cols = [c for c in (_group_cols(a, cols)) if c in _group_cols(b, cols)]
+    keys = ["seed", "setting", "query"]
+    j = a[keys + cols].merge(b[keys + cols], on=keys, how="inner", suffixes=("_a", "_b"), validate="one_to_one")
+    d = j[keys].copy()
+    for c in cols:
+        d[c] = j[f"{c}_a"].to_numpy(dtype=float) - j[f"{c}_b"].to_numpy(dtype=float)
+    rows = []
+    if len(d) and cols:
+        values, nq = boot.cube(d, cols)
+        iv = boot.interval(values, nq)
+        for i, c in enumerate(cols):
+            lo, hi = float(iv["ci_lo"][i]), float(iv["ci_hi"][i])
+            rows.append((*_split_metric(c), float(iv["mean"][i]), lo, hi, bool(lo > 0 or hi < 0),
+                         int(d["seed"].nunique()), len(d)))
+    return pd.DataFrame(rows, columns=["metric", "k", "diff", "ci_lo", "ci_hi", "significant", "n_seeds", "n_queries"])
+
+
+def _best_threshold(means: pd.Series) -> float:
+    """The threshold with the highest mean (index: thresholds); ties (to 1e-9): the smallest threshold."""
+    top = means.max()
+    return float(min(t for t, v in means.items() if v >= top - 1e-9))
+
+
+def threshold_tests(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
+    """Per (method, scenario, metric, k) with more than one threshold: every threshold against the scenario's best
+    (highest mean; ties: the smallest threshold), paired bootstrap of (threshold - best).
+    Columns ``method, scenario, metric, k, threshold, best_threshold, diff, ci_lo, ci_hi, significant``
+    (significant: the interval excludes 0, i.e. significantly worse than the best)."""
+    rows = []
+    for (method, scenario), g in iv.groupby(["method", "scenario"], sort=False):
+        if g["threshold"].nunique() < 2:
+            continue
+        best = {f"{m}@{k}": _best_threshold(gm.set_index("threshold")["mean"])
+                for (m, k), gm in g.groupby(["metric", "k"], sort=False)}
+        for t in sorted(g["threshold"].unique()):
+            for b in sorted(set(best.values()) - {t}):
+                cols = [c for c, bt in best.items() if bt == b]
+                d = paired_difference(_rows_of(qv, method, scenario, t), _rows_of(qv, method, scenario, b), boot, cols)
+                for r in d.itertuples(index=False):
+                    rows.append((method, scenario, r.metric, int(r.k), float(t), b, r.diff, r.ci_lo, r.ci_hi,
+                                 bool(r.significant)))
+    out = pd.DataFrame(rows, columns=["method", "scenario", "metric", "k", "threshold", "best_threshold", "diff",
+                                      "ci_lo", "ci_hi", "significant"])
+    out["metric_order"] = out["metric"].map(METRICS.index)
+    out = _sort(out, ["method", "scenario", "metric_order", "k", "threshold"]).drop(columns="metric_order")
+    return out
+
+
 # ---- tables ----------------------------------------------------------------------------------------------------
 
-def _table_frame(results: pd.DataFrame, metric: str) -> pd.DataFrame:
-    """The machine-readable table: method, scenario, threshold, k, mean, std, n, paper (+ layout helpers)."""
+def _table_frame(results: pd.DataFrame, metric: str, iv: Optional[pd.DataFrame] = None,
+                 tests: Optional[pd.DataFrame] = None) -> pd.DataFrame:
+    """The machine-readable table: method, scenario, threshold, k, mean, std, n, [ci_lo, ci_hi,] paper,
+    [worse_than_best] (+ layout helpers)."""
     s = summary(results[results["metric"] == metric])
+    if iv is not None:
+        ci = iv[iv["metric"] == metric][SUMMARY_KEYS + ["ci_lo", "ci_hi"]].drop(columns="metric")
+        s = s.merge(ci, on=["method", "scenario", "threshold", "k"], how="left")
     paper = paper_tables()
     paper = paper[paper["metric"] == metric][["scenario", "threshold", "k", "value"]].rename(columns={"value": "paper"})
     paper["method"] = "gcn"     # the paper's numbers are its GCN's
     s = s.merge(paper, on=["method", "scenario", "threshold", "k"], how="left")
+    if tests is not None:
+        tt = tests[tests["metric"] == metric][["method", "scenario", "threshold", "k", "significant"]]
+        s = s.merge(tt.rename(columns={"significant": "worse_than_best"}),
+                    on=["method", "scenario", "threshold", "k"], how="left")
+        s["worse_than_best"] = s["worse_than_best"].astype("boolean").fillna(False).astype(bool)
     s["image"] = [_is_image(m, sc) for m, sc in zip(s["method"], s["scenario"])]
     # graph methods first (method, scenario, threshold), image baselines below
     s["_img"] = s["image"].astype(int)
@@ -331,9 +597,18 @@ def _fmt(mean: float, std: float, n: int) -> str:
     return f"{mean:.1f}"
 
 
-def _layout(results: pd.DataFrame, metric: str, scenario_labels: Mapping[str, str]):
-    """Rows of the paper's layout: one per (method, scenario, threshold), cells per k, best marked."""
-    t = _table_frame(results, metric)
+def _fmt_ci(lo, hi) -> str:
+    if lo is None or hi is None or not (np.isfinite(lo) and np.isfinite(hi)):
+        return ""
+    return f"[{lo:.1f}, {hi:.1f}]"
+
+
+def _layout(results: pd.DataFrame, metric: str, scenario_labels: Mapping[str, str],
+            iv: Optional[pd.DataFrame] = None, tests: Optional[pd.DataFrame] = None):
+    """Rows of the paper's layout: one per (method, scenario, threshold), cells per k, best marked.
+
+    A cell is ``{"mean", "std", "n", "best", "ci" (text, '' without intervals), "worse" (dagger)}``."""
+    t = _table_frame(results, metric, iv, tests)
     ks = sorted(t["k"].unique())
     t["shown"] = t["mean"].round(1)
     best = t.groupby(["method", "scenario", "k"])["shown"].transform("max")
@@ -344,11 +619,18 @@ def _layout(results: pd.DataFrame, metric: str, scenario_labels: Mapping[str, st
         g = g.set_index("k")
         image = bool(g["image"].iloc[0])
         label = "RGB only" if image else f"{scenario}: {scenario_labels.get(scenario, scenario)}"
+        cells = {}
+        for k in ks:
+            if k not in g.index:
+                cells[k] = None
+                continue
+            r = g.loc[k]
+            cells[k] = {"mean": r["mean"], "std": r["std"], "n": int(r["n"]), "best": bool(r["best"]),
+                        "ci": _fmt_ci(r["ci_lo"], r["ci_hi"]) if "ci_lo" in g.columns else "",
+                        "worse": bool(r["worse_than_best"]) if "worse_than_best" in g.columns else False}
         rows.append({
             "method": method, "scenario": scenario, "label": label, "image": image,
-            "threshold": None if image else threshold,
-            "cells": {k: (g.loc[k, "mean"], g.loc[k, "std"], int(g.loc[k, "n"]), bool(g.loc[k, "best"]))
-                      if k in g.index else None for k in ks},
+            "threshold": None if image else threshold, "cells": cells,
             "paper": {k: (g.loc[k, "paper"] if k in g.index else np.nan) for k in ks},
         })
     return t, ks, rows
@@ -362,22 +644,46 @@ def _n_note(t: pd.DataFrame) -> str:
     return f"n = {int(ns[0])}–{int(ns[-1])} seeds (see the csv)"
 
 
-def _caption(metric: str, t: pd.DataFrame, tex: bool = False) -> str:
-    pm, inf = (r"$\pm$", r"$\infty$") if tex else ("±", "∞")
+def _caption(metric: str, t: pd.DataFrame, tex: bool = False, n_boot: Optional[int] = None) -> str:
+    pm, inf, dag = (r"$\pm$", r"$\infty$", r"$^\dagger$") if tex else ("±", "∞", DAGGER)
     ours = "Ours: one seed" if set(t["n"]) == {1} else f"Ours: mean {pm} std over seeds, {_n_note(t)}"
-    return (f"{ours}; paper: the published single-run number "
+    text = (f"{ours}; paper: the published single-run number "
             f"(GCN rows, thresholds 1, 2, 5, 10, {inf}). "
             f"Bold: best mean per method and scenario for each k.")
+    if "ci_lo" in t.columns:
+        text += (f" [lo, hi]: 95% bootstrap interval of our mean ({n_boot or N_BOOT} resamples of test settings, "
+                 f"of queries within each setting and of seeds, all with replacement).")
+    if "worse_than_best" in t.columns:
+        text += (f" {dag}: significantly below the best threshold of its method and scenario for this k (paired "
+                 f"bootstrap of the difference on the same queries, 95% interval excluding 0; each threshold "
+                 f"tested on its own, no correction for multiple comparisons).")
+    return text
 
 
-def _md_table(metric: str, results, scenario_labels) -> str:
-    t, ks, rows = _layout(results, metric, scenario_labels)
+def _cell_text(c: Optional[dict], tex: bool) -> str:
+    if c is None:
+        return "--" if tex else "–"
+    main = _fmt(c["mean"], c["std"], c["n"])
+    if tex:
+        main = _tex(main)
+        text = rf"\textbf{{{main}}}" if c["best"] else main
+        if c["ci"]:
+            text += rf" {{\scriptsize {c['ci']}}}"
+        return text + (r"$^\dagger$" if c["worse"] else "")
+    text = f"**{main}**" if c["best"] else main
+    if c["ci"]:
+        text += f" {c['ci']}"
+    return text + (DAGGER if c["worse"] else "")
+
+
+def _md_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None) -> str:
+    t, ks, rows = _layout(results, metric, scenario_labels, iv, tests)
     name, title = TABLES[metric][0], TABLES[metric][1]
     has_paper = t["paper"].notna().any()
     head = ["method", "data", "threshold (m)"] + [f"k={k}" for k in ks]
     if has_paper:
         head += [f"paper k={k}" for k in ks]
-    lines = [f"**{title}.** {_caption(metric, t)}", "",
+    lines = [f"**{title}.** {_caption(metric, t, n_boot=n_boot)}", "",
              "| " + " | ".join(head) + " |",
              "|" + "|".join(["---"] * 3 + ["---:"] * (len(head) - 3)) + "|"]
     prev = None
@@ -385,11 +691,7 @@ def _md_table(metric: str, results, scenario_labels) -> str:
         group = (r["method"], r["scenario"])
         first = group != prev
         prev = group
-        cells = []
-        for k in ks:
-            c = r["cells"][k]
-            text = "–" if c is None else _fmt(*c[:3])
-            cells.append(f"**{text}**" if c is not None and c[3] else text)
+        cells = [_cell_text(r["cells"][k], tex=False) for k in ks]
         line = [r["method"] if first else "", r["label"] if first else "", threshold_label(r["threshold"])] + cells
         if has_paper:
             line += [f"{r['paper'][k]:.1f}" if np.isfinite(r["paper"][k]) else "" for k in ks]
@@ -398,21 +700,21 @@ def _md_table(metric: str, results, scenario_labels) -> str:
 
 
 _TEX_ESCAPE = {"&": r"\&", "%": r"\%", "_": r"\_", "#": r"\#", "$": r"\$", "{": r"\{", "}": r"\}", "~": r"\~{}",
-               "^": r"\^{}", "±": r"$\pm$", "∞": r"$\infty$", "–": "--"}
+               "^": r"\^{}", "±": r"$\pm$", "∞": r"$\infty$", "–": "--", "†": r"$^\dagger$", "Δ": r"$\Delta$"}
 
 
 def _tex(text: str) -> str:
     return "".join(_TEX_ESCAPE.get(ch, ch) for ch in str(text))
 
 
-def _tex_table(metric: str, results, scenario_labels) -> str:
-    t, ks, rows = _layout(results, metric, scenario_labels)
+def _tex_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None) -> str:
+    t, ks, rows = _layout(results, metric, scenario_labels, iv, tests)
     name, title = TABLES[metric]
     has_paper = t["paper"].notna().any()
     nk = len(ks)
     cols = "lll" + "r" * nk + ("r" * nk if has_paper else "")
     out = [r"\begin{table}[t]", r"\centering", r"\small",
-           rf"\caption{{\textbf{{{_tex(title)}.}} {_caption(metric, t, tex=True)}}}",
+           rf"\caption{{\textbf{{{_tex(title)}.}} {_caption(metric, t, tex=True, n_boot=n_boot)}}}",
            rf"\label{{tab:{name}}}", rf"\begin{{tabular}}{{{cols}}}", r"\toprule"]
     group = rf" & & & \multicolumn{{{nk}}}{{c}}{{ours, $k$}}"
     rule = rf"\cmidrule(lr){{4-{3 + nk}}}"
@@ -429,11 +731,7 @@ def _tex_table(metric: str, results, scenario_labels) -> str:
         if first and prev is not None:
             out.append(r"\midrule")
         prev = group_key
-        cells = []
-        for k in ks:
-            c = r["cells"][k]
-            text = "--" if c is None else _tex(_fmt(*c[:3]))
-            cells.append(rf"\textbf{{{text}}}" if c is not None and c[3] else text)
+        cells = [_cell_text(r["cells"][k], tex=True) for k in ks]
         line = [_tex(r["method"]) if first else "", _tex(r["label"]) if first else "",
                 threshold_label(r["threshold"], tex=True)] + cells
         if has_paper:
@@ -443,27 +741,36 @@ def _tex_table(metric: str, results, scenario_labels) -> str:
     return "\n".join(out) + "\n"
 
 
-def _csv_table(metric: str, results) -> str:
-    t = _table_frame(results, metric)[["method", "scenario", "threshold", "k", "mean", "std", "n", "paper"]].copy()
+def _csv_table(metric: str, results, iv=None, tests=None) -> str:
+    t = _table_frame(results, metric, iv, tests)
+    cols = ["method", "scenario", "threshold", "k", "mean", "std", "n"]
+    cols += ["ci_lo", "ci_hi"] if iv is not None else []
+    cols += ["paper"] + (["worse_than_best"] if tests is not None else [])
+    t = t[cols].copy()
     t["threshold"] = t["threshold"].map(paths.threshold_tag)
-    for c in ("mean", "std", "paper"):
-        t[c] = t[c].round(4)
+    for c in ("mean", "std", "paper", "ci_lo", "ci_hi"):
+        if c in t.columns:
+            t[c] = t[c].round(4)
     return t.to_csv(index=False, lineterminator="\n")
 
 
-def table_markdown(results: pd.DataFrame, metric: str, scenario_labels: Optional[Mapping[str, str]] = None) -> str:
+def table_markdown(results: pd.DataFrame, metric: str, scenario_labels: Optional[Mapping[str, str]] = None,
+                   intervals: Optional[pd.DataFrame] = None, tests: Optional[pd.DataFrame] = None) -> str:
     """Table 1 (``metric='recall'``) or Table 2 (``'precision'``) as markdown."""
-    return _md_table(metric, results, scenario_labels or {})
+    return _md_table(metric, results, scenario_labels or {}, intervals, tests)
 
 
 def write_tables(results: pd.DataFrame, out_dir: str | Path,
-                 scenario_labels: Optional[Mapping[str, str]] = None) -> dict[str, Path]:
+                 scenario_labels: Optional[Mapping[str, str]] = None, intervals: Optional[pd.DataFrame] = None,
+                 tests: Optional[pd.DataFrame] = None, n_boot: Optional[int] = None) -> dict[str, Path]:
     """Write ``table1_recall.{md,csv,tex}`` and ``table2_precision.{md,csv,tex}`` into `out_dir`.
 
     Rows: method / scenario x threshold, image baselines below ("RGB only"); columns: k (ours, mean ± std over
-    seeds, or the mean alone when n = 1) then the paper's published number for the GCN rows. Best mean per
-    (method, scenario, k) in bold (compared at the printed precision). The csv has ``method, scenario, threshold,
-    k, mean, std, n, paper``. Returns ``{"table1_md": path, ...}``.
+    seeds, or the mean alone when n = 1; with `intervals` (see `intervals`) followed by the 95 % bootstrap
+    interval ``[lo, hi]``; with `tests` (see `threshold_tests`) a dagger on thresholds significantly below the
+    best) then the paper's published number for the GCN rows. Best mean per (method, scenario, k) in bold
+    (compared at the printed precision). The csv has ``method, scenario, threshold, k, mean, std, n, [ci_lo,
+    ci_hi,] paper[, worse_than_best]``. Returns ``{"table1_md": path, ...}``.
     """
     out_dir = Path(out_dir)
     labels = dict(scenario_labels or {})
@@ -473,8 +780,9 @@ def write_tables(results: pd.DataFrame, out_dir: str | Path,
             log.warning("no %s numbers in the results: %s not written", metric, name)
             continue
         short = name.split("_")[0]
-        for ext, text in (("md", _md_table(metric, results, labels)), ("csv", _csv_table(metric, results)),
-                          ("tex", _tex_table(metric, results, labels))):
+        for ext, text in (("md", _md_table(metric, results, labels, intervals, tests, n_boot)),
+                          ("csv", _csv_table(metric, results, intervals, tests)),
+                          ("tex", _tex_table(metric, results, labels, intervals, tests, n_boot))):
             path = out_dir / f"{name}.{ext}"
             io.write_text(path, text)
             written[f"{short}_{ext}"] = path
@@ -492,13 +800,17 @@ def _figure(**kw):
 
 
 def fig_recall_vs_threshold(results: pd.DataFrame, path: str | Path, method: str = "gcn", k: int = 1,
-                            scenario_labels: Optional[Mapping[str, str]] = None) -> Path:
-    """recall@k against the edge threshold: one line per scenario (mean, error bars = std over seeds), the
-    paper's values as faint dotted lines in the same colour, image baselines as horizontal dashed lines."""
+                            scenario_labels: Optional[Mapping[str, str]] = None,
+                            intervals: Optional[pd.DataFrame] = None) -> Path:
+    """recall@k against the edge threshold: one line per scenario (mean, error bars = std over seeds, or the 95 %
+    bootstrap interval when `intervals` are given), the paper's values as faint dotted lines in the same colour,
+    image baselines as horizontal dashed lines."""
     import matplotlib
 
     labels = dict(scenario_labels or {})
     s = summary(results[(results["metric"] == "recall") & (results["k"] == k)])
+    if intervals is not None:
+        s = s.merge(intervals[SUMMARY_KEYS + ["ci_lo", "ci_hi"]], on=SUMMARY_KEYS, how="left")
     ours = s[(s["method"] == method) & ~s["scenario"].eq(IMAGE_SCENARIO)]
     paper = paper_tables()
     paper = paper[(paper["metric"] == "recall") & (paper["k"] == k)]
@@ -511,8 +823,14 @@ def fig_recall_vs_threshold(results: pd.DataFrame, path: str | Path, method: str
     ax = fig.subplots()
     for i, sc in enumerate(scenarios):
         g = ours[ours["scenario"] == sc].sort_values("threshold")
-        x = [xpos[t] for t in g["threshold"]]
-        ax.errorbar(x, g["mean"], yerr=g["std"].fillna(0.0).to_numpy(), color=colours(i), marker="o", capsize=3,
+        dodge = 0.06 * (i - (len(scenarios) - 1) / 2) if intervals is not None else 0.0
+        x = [xpos[t] + dodge for t in g["threshold"]]
+        if intervals is not None:
+            yerr = np.vstack([g["mean"] - g["ci_lo"], g["ci_hi"] - g["mean"]])
+            yerr = np.nan_to_num(yerr, nan=0.0)
+        else:
+            yerr = g["std"].fillna(0.0).to_numpy()
+        ax.errorbar(x, g["mean"], yerr=yerr, color=colours(i), marker="o", capsize=3,
                     label=f"{sc}: {labels.get(sc, sc)}")
         if method == "gcn":
             p = paper[paper["scenario"] == sc].sort_values("threshold")
@@ -527,7 +845,10 @@ def fig_recall_vs_threshold(results: pd.DataFrame, path: str | Path, method: str
     ax.set_xlabel("edge distance threshold (m)")
     ax.set_ylabel(f"recall@{k} (%)")
     ax.set_ylim(0, 100)
-    spread = "one seed" if set(s["n"]) <= {1} else f"error bars: std over seeds, {_n_note(s)}"
+    if intervals is not None:
+        spread = f"error bars: 95% bootstrap intervals, {_n_note(s).replace(' (mean only)', '')}"
+    else:
+        spread = "one seed" if set(s["n"]) <= {1} else f"error bars: std over seeds, {_n_note(s)}"
     ax.set_title(f"{method}: recall@{k} vs edge threshold ({spread})", fontsize=9)
     ax.grid(alpha=0.3)
     handles, names = ax.get_legend_handles_labels()
@@ -675,27 +996,412 @@ def fig_matches(study_name: str, rgb_of: RgbOf, path: str | Path, method: str = 
     return io.save_figure(fig, path)
 
 
+# ---- controlled comparisons: encoder ablation, light, depth scale ----------------------------------------------
+
+def scenario_info(study_name: str, study=None) -> pd.DataFrame:
+    """``scenario, depth, semantic, depth_scale, in_tables, label`` of every scenario: from the study when given,
+    else from what the cells recorded (``depth``, ``semantic``, ``depth_scale`` (default 1), ``in_tables``
+    (default True))."""
+    cols = ["scenario", "depth", "semantic", "depth_scale", "in_tables", "label"]
+    rows = []
+    if study is not None:
+        for name, sc in study.scenarios.items():
+            rows.append((name, sc.depth, sc.semantic, float(sc.depth_scale), bool(sc.in_tables), sc.label or name))
+    else:
+        seen = set()
+        for f in cell_files(study_name):
+            cell = io.read_json(f)
+            name = str(cell.get("scenario"))
+            if name in seen or name == IMAGE_SCENARIO or cell.get("depth") is None:
+                continue
+            seen.add(name)
+            rows.append((name, str(cell.get("depth")), str(cell.get("semantic")), float(cell.get("depth_scale", 1.0)),
+                         bool(cell.get("in_tables", True)), str(cell.get("scenario_label") or name)))
+    out = pd.DataFrame(rows, columns=cols)
+    return out.sort_values("scenario", key=lambda c: c.map(_natural_key), kind="mergesort").reset_index(drop=True)
+
+
+def _graph_methods(qv: pd.DataFrame, study=None, base: str = "gcn") -> list[str]:
+    present = [m for m in _method_order(qv["method"].unique())
+               if not _is_image(m, str(qv.loc[qv["method"] == m, "scenario"].iloc[0]))]
+    if study is not None:
+        order = [m for m in study.graph_methods() if m in present]
+        present = order + [m for m in present if m not in order]
+    return ([base] if base in present else []) + [m for m in present if m != base]
+
+
+def _description(method: str, study=None) -> str:
+    from monolib.methods import METHODS
+
+    if study is not None and method in getattr(study, "variants", {}):
+        return study.variants[method].description or method
+    if study is not None and method in METHODS:
+        return METHODS[method][1]
+    return method
+
+
+def _pick_cols(cols: list[str]) -> list[str]:
+    """recall@1 and precision@6 when present, else the smallest recall k and the largest precision k."""
+    rec = sorted((c for c in cols if c.startswith("recall@")), key=lambda c: _split_metric(c)[1])
+    pre = sorted((c for c in cols if c.startswith("precision@")), key=lambda c: _split_metric(c)[1])
+    out = []
+    if rec:
+        out.append("recall@1" if "recall@1" in rec else rec[0])
+    if pre:
+        out.append("precision@6" if "precision@6" in pre else pre[-1])
+    return out
+
+
+ABLATION_COLUMNS = ["method", "description", "scenario", "threshold", "metric", "k", "mean", "ci_lo", "ci_hi",
+                    "n_seeds", "diff_vs_base", "diff_lo", "diff_hi", "significant"]
+
+
+def encoder_ablation(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, study=None,
+                     base: str = "gcn") -> pd.DataFrame:
+    """The encoder variants against `base` on every (scenario, threshold) a variant was run at: recall@1 and
+    precision@6 with their intervals, and the paired bootstrap difference to `base` (same seeds, settings and
+    queries). Empty when the study has no variant cells. Columns `ABLATION_COLUMNS`."""
+    methods = _graph_methods(qv, study, base)
+    variants = [m for m in methods if m != base]
+    if not variants:
+        return pd.DataFrame(columns=ABLATION_COLUMNS)
+    vq = qv[qv["method"].isin(variants)]
+    combos = sorted({(sc, float(t)) for sc, t in zip(vq["scenario"], vq["threshold"])},
+                    key=lambda st: (_natural_key(st[0]), st[1]))
+    cols = _pick_cols(_metric_cols(qv))
+    ivx = iv.set_index(["method", "scenario", "threshold", "metric", "k"]).sort_index()
+    rows = []
+    for m in methods:
+        for sc, t in combos:
+            mine = _rows_of(qv, m, sc, t)
+            if mine.empty:
+                continue
+            diffs = pd.DataFrame()
+            if m != base:
+                ref = _rows_of(qv, base, sc, t)
+                if not ref.empty:
+                    diffs = paired_difference(mine, ref, boot, cols).set_index(["metric", "k"])
+            for c in cols:
+                metric, k = _split_metric(c)
+                key_ = (m, sc, t, metric, k)
+                if key_ not in ivx.index:
+                    continue
+                r = ivx.loc[key_]
+                d = diffs.loc[(metric, k)] if (metric, k) in diffs.index else None
+                rows.append((m, _description(m, study), sc, t, metric, k, float(r["mean"]), float(r["ci_lo"]),
+                             float(r["ci_hi"]), int(r["n_seeds"]),
+                             *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
+                               if d is not None else (np.nan, np.nan, np.nan, False))))
+    return pd.DataFrame(rows, columns=ABLATION_COLUMNS)
+
+
+def _signed(x: float) -> str:
+    return f"{x:+.1f}".replace("-", "−") if np.isfinite(x) else "–"
+
+
+def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
+                      base: str = "gcn", n_boot: int = N_BOOT) -> str:
+    """``encoder_ablation.md``: rows = method x (scenario, threshold) (the base first), columns = each metric's
+    ``mean [lo, hi]`` and its paired difference to the base ``Δ [lo, hi]`` (* when significant)."""
+    labels = dict(scenario_labels or {})
+    metrics = list(dict.fromkeys(f"{m}@{k}" for m, k in zip(table["metric"], table["k"])))
+    head = ["method", "data", "threshold (m)"]
+    for c in metrics:
+        head += [c, f"Δ {c} vs {base}"]
+    lines = [f"**Encoder ablation.** Mean over seeds [95% bootstrap interval: {n_boot} resamples of test settings, "
+             f"queries and seeds]. Δ: paired difference to `{base}` on the same seeds, settings and queries "
+             f"[95% paired bootstrap interval]; {STAR}: the interval excludes 0 (no correction for multiple "
+             f"comparisons).", "",
+             "| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * (len(head) - 3)) + "|"]
+    prev = None
+    for (m, sc, t), g in table.groupby(["method", "scenario", "threshold"], sort=False):
+        g = g.assign(col=[f"{a}@{b}" for a, b in zip(g["metric"], g["k"])]).set_index("col")
+        line = [f"`{m}`" if m != prev else "", f"{sc}: {labels.get(sc, sc)}", threshold_label(t)]
+        prev = m
+        for c in metrics:
+            if c not in g.index:
+                line += ["–", "–"]
+                continue
+            r = g.loc[c]
+            line.append(f"{r['mean']:.1f} {_fmt_ci(r['ci_lo'], r['ci_hi'])}")
+            if m == base or not np.isfinite(r["diff_vs_base"]):
+                line.append("–")
+            else:
+                line.append(f"{_signed(r['diff_vs_base'])} [{_signed(r['diff_lo'])}, {_signed(r['diff_hi'])}]"
+                            + (STAR if r["significant"] else ""))
+        lines.append("| " + " | ".join(line) + " |")
+    lines += ["", "Methods:"]
+    for m, d in dict(zip(table["method"], table["description"])).items():
+        lines.append(f"- `{m}`: {d}")
+    return "\n".join(lines) + "\n"
+
+
+def dim_settings(study_name: str, study=None) -> Optional[dict[str, bool]]:
+    """``{setting: dim}`` from the synthetic dataset's ``monolib_synth.json``; None when there is none (a real
+    Hypersim download, or a study without a rendered dataset)."""
+    root = study.dataset_root if study is not None else paths.study_dir(study_name) / "dataset"
+    f = Path(root) / "monolib_synth.json"
+    if not f.is_file():
+        return None
+    return {str(s["name"]): bool(s.get("dim", False)) for s in io.read_json(f).get("settings", [])}
+
+
+LIGHT_COLUMNS = ["method", "scenario", "threshold", "light", "n_settings", "n_queries", "mean", "ci_lo", "ci_hi",
+                 "n_seeds"]
+
+
+def light_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, dim_of: Mapping[str, bool],
+                scenarios: Optional[list[str]] = None, method: str = "gcn", k: int = 1) -> pd.DataFrame:
+    """recall@k of the queries of dim and of bright test settings: `method` on each scenario (default: every
+    scenario it has) at that scenario's best threshold by mean recall@k (ties: the smallest), and every image
+    baseline. Rows ``light`` = dim, bright and ``bright - dim`` (the difference of the two resampled means; the two
+    sets of settings are drawn independently, the seeds jointly). Columns `LIGHT_COLUMNS`."""
+    col = f"recall@{k}"
+    groups = []
+    r = iv[(iv["method"] == method) & (iv["metric"] == "recall") & (iv["k"] == k)]
+    for sc in sorted(r["scenario"].unique(), key=_natural_key):
+        if scenarios is not None and sc not in scenarios:
+            continue
+        groups.append((method, sc, _best_threshold(r[r["scenario"] == sc].set_index("threshold")["mean"])))
+    for (m, sc, t) in qv[GROUP_KEYS].drop_duplicates().itertuples(index=False):
+        if _is_image(m, sc):
+            groups.append((m, sc, float(t)))
+    rows = []
+    for m, sc, t in groups:
+        g = _rows_of(qv, m, sc, t)
+        if col not in g.columns or g[col].isna().any():
+            continue
+        dim = g["setting"].map(lambda s: bool(dim_of.get(s, False)))
+        parts = {}
+        offset = 0
+        for light, part in (("dim", g[dim.to_numpy()]), ("bright", g[~dim.to_numpy()])):
+            if part.empty:
+                rows.append((m, sc, t, light, 0, 0, np.nan, np.nan, np.nan, 0))
+                continue
+            values, nq = boot.cube(part, [col])
+            off = offset if offset + values.shape[1] <= boot.shape[1] else 0
+            iv_ = boot.interval(values, nq, off)
+            offset += values.shape[1]
+            parts[light] = iv_
+            rows.append((m, sc, t, light, int(part["setting"].nunique()), len(part), float(iv_["mean"][0]),
+                         float(iv_["ci_lo"][0]), float(iv_["ci_hi"][0]), int(part["seed"].nunique())))
+        if len(parts) == 2:
+            d = parts["bright"]["boot"][:, 0] - parts["dim"]["boot"][:, 0]
+            lo, hi = np.nanpercentile(d, [2.5, 97.5])
+            rows.append((m, sc, t, "bright - dim", int(g["setting"].nunique()), len(g),
+                         float(parts["bright"]["mean"][0] - parts["dim"]["mean"][0]), float(lo), float(hi),
+                         int(g["seed"].nunique())))
+    return pd.DataFrame(rows, columns=LIGHT_COLUMNS)
+
+
+def fig_recall_by_light(table: pd.DataFrame, path: str | Path, method: str = "gcn", k: int = 1,
+                        n_boot: int = N_BOOT) -> Path:
+    """Bars: recall@k of queries in bright and in dim test settings per scenario (`method` at each scenario's best
+    threshold) and per image baseline; error bars: 95 % bootstrap intervals."""
+    t = table[table["light"].isin(["dim", "bright"])]
+    groups = list(dict.fromkeys(zip(t["method"], t["scenario"], t["threshold"])))
+    fig = _figure(figsize=(max(4.8, 1.1 * len(groups) + 2.0), 3.8))
+    ax = fig.subplots()
+    width = 0.38
+    colours = {"bright": "#f2b134", "dim": "#3b4a6b"}
+    for j, light in enumerate(("bright", "dim")):
+        xs, ys, err = [], [], [[], []]
+        n_set = sorted(set(t[t["light"] == light]["n_settings"]))
+        for i, key_ in enumerate(groups):
+            r = t[(t["method"] == key_[0]) & (t["scenario"] == key_[1]) & (t["threshold"] == key_[2])
+                  & (t["light"] == light)]
+            if r.empty or not np.isfinite(r["mean"].iloc[0]):
+                continue
+            r = r.iloc[0]
+            xs.append(i + (j - 0.5) * width)
+            ys.append(r["mean"])
+            err[0].append(r["mean"] - r["ci_lo"])
+            err[1].append(r["ci_hi"] - r["mean"])
+        label = f"{light} settings (n = {', '.join(str(int(n)) for n in n_set)})"
+        ax.bar(xs, ys, width, yerr=np.asarray(err), capsize=3, color=colours[light], label=label,
+               error_kw={"elinewidth": 1.0})
+    names = [f"{m}\n{sc}, t = {threshold_label(th)}" if not _is_image(m, sc) else f"{m}\n(RGB only)"
+             for m, sc, th in groups]
+    ax.set_xticks(range(len(groups)), names, fontsize=7)
+    ax.set_ylabel(f"recall@{k} (%)")
+    ax.set_ylim(0, 100)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7, frameon=False)
+    ax.set_title(f"recall@{k}: queries of dim vs bright test settings\n({method} at each scenario's best threshold by "
+                 f"mean recall@{k}; error bars: 95% bootstrap intervals, B = {n_boot})", fontsize=8)
+    return io.save_figure(fig, path)
+
+
+DEPTH_COLUMNS = ["method", "depth", "semantic", "scenario", "depth_scale", "threshold", "mean", "ci_lo", "ci_hi",
+                 "n_seeds", "diff_vs_scale1", "diff_lo", "diff_hi", "significant"]
+
+
+def depth_scale_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame,
+                      method: str = "gcn", k: int = 1) -> pd.DataFrame:
+    """recall@k against the depth scale factor: the scenarios with ``depth_scale != 1`` and, per (depth,
+    semantic) source pair, the scenario with the same sources and scale 1 (the one in the tables first), at
+    every threshold `method` was run; with the paired difference to scale 1 at the same threshold. Empty when
+    the study has no scaled scenario. Columns `DEPTH_COLUMNS`."""
+    col = f"recall@{k}"
+    rows = []
+    if info.empty:
+        return pd.DataFrame(columns=DEPTH_COLUMNS)
+    scaled = info[info["depth_scale"] != 1.0]
+    r = iv[(iv["method"] == method) & (iv["metric"] == "recall") & (iv["k"] == k)]
+    for (depth, semantic), grp in scaled.groupby(["depth", "semantic"], sort=False):
+        same = info[(info["depth"] == depth) & (info["semantic"] == semantic)]
+        ones = same[same["depth_scale"] == 1.0].sort_values("in_tables", ascending=False, kind="mergesort")
+        ref = str(ones["scenario"].iloc[0]) if len(ones) else None
+        members = ([ref] if ref else []) + list(grp["scenario"])
+        for sc in members:
+            scale = float(info.loc[info["scenario"] == sc, "depth_scale"].iloc[0])
+            for _, row in r[r["scenario"] == sc].sort_values("threshold").iterrows():
+                t = float(row["threshold"])
+                d = None
+                if ref and sc != ref and not _rows_of(qv, method, ref, t).empty:
+                    dd = paired_difference(_rows_of(qv, method, sc, t), _rows_of(qv, method, ref, t), boot, [col])
+                    d = dd.iloc[0] if len(dd) else None
+                rows.append((method, depth, semantic, sc, scale, t, float(row["mean"]), float(row["ci_lo"]),
+                             float(row["ci_hi"]), int(row["n_seeds"]),
+                             *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
+                               if d is not None else (np.nan, np.nan, np.nan, False))))
+    out = pd.DataFrame(rows, columns=DEPTH_COLUMNS)
+    return out.sort_values(["depth", "semantic", "threshold", "depth_scale"], kind="mergesort").reset_index(drop=True)
+
+
+def fig_recall_vs_depth_scale(table: pd.DataFrame, path: str | Path, k: int = 1, n_boot: int = N_BOOT) -> Path:
+    """recall@k against the depth scale factor (log axis), one line per threshold, one panel per (depth,
+    semantic) source pair; error bars: 95 % bootstrap intervals."""
+    import matplotlib
+
+    pairs = list(dict.fromkeys(zip(table["depth"], table["semantic"])))
+    fig = _figure(figsize=(4.6 * len(pairs) + 1.6, 3.8))
+    axes = np.ravel(fig.subplots(1, len(pairs), squeeze=False))
+    colours = matplotlib.colormaps["viridis"]
+    thresholds = sorted(table["threshold"].unique())
+    for ax, (depth, semantic) in zip(axes, pairs):
+        g = table[(table["depth"] == depth) & (table["semantic"] == semantic)]
+        scales = sorted(g["depth_scale"].unique())
+        for i, t in enumerate(thresholds):
+            h = g[g["threshold"] == t].sort_values("depth_scale")
+            if h.empty:
+                continue
+            jitter = 1.0 + 0.012 * (i - (len(thresholds) - 1) / 2)
+            ax.errorbar(h["depth_scale"] * jitter, h["mean"],
+                        yerr=np.vstack([h["mean"] - h["ci_lo"], h["ci_hi"] - h["mean"]]), marker="o", capsize=3,
+                        color=colours(i / max(1, len(thresholds) - 1) * 0.9), label=f"t = {threshold_label(t)} m")
+        ax.set_xscale("log")
+        ax.set_xticks(scales, [f"{s:g}" for s in scales])
+        ax.minorticks_off()
+        ax.axvline(1.0, color="0.6", linewidth=0.8, linestyle=":")
+        ax.set_xlabel("depth scale factor")
+        ax.set_ylabel(f"recall@{k} (%)")
+        ax.set_ylim(0, 100)
+        ax.grid(alpha=0.3)
+        ax.set_title(f"depth: {depth}, semantics: {semantic}", fontsize=8)
+    axes[-1].legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    method = table["method"].iloc[0] if len(table) else "gcn"
+    fig.suptitle(f"{method}: recall@{k} vs depth scale (error bars: 95% bootstrap intervals, B = {n_boot})",
+                 fontsize=8)
+    return io.save_figure(fig, path)
+
+
+def _csv(df: pd.DataFrame) -> str:
+    return df.to_csv(index=False, float_format="%.6g", lineterminator="\n")
+
+
 # ---- the whole report ------------------------------------------------------------------------------------------
 
-def write_report(study_name: str, rgb_of: Optional[RgbOf] = None,
-                 scenario_labels: Optional[Mapping[str, str]] = None, method: str = "gcn") -> dict[str, Path]:
-    """Collect a study's cells and write into `monolib.paths.figures_dir(study)`: ``results.csv``, Table 1 and 2
-    (md, csv, tex), ``recall_vs_threshold.png`` and ``fig5_matches.png`` (skipped when `rgb_of` is None or the
-    study has no `method` cell). Labels default to the ``scenario_label`` the cells recorded.
-    Returns ``{"results": path, "table1_md": path, ..., "recall_vs_threshold": path, "fig5_matches": path}``.
+def _load_study(study_name: str):
+    """The study of that name from `params/` (None when there is no such file or it does not load)."""
+    from monolib import params
+
+    try:
+        return params.load_study(study_name, check_files=False)
+    except (params.StudyError, OSError) as exc:
+        log.info("report of %s without its study file (%s)", study_name, exc)
+        return None
+
+
+def write_report(study_name, rgb_of: Optional[RgbOf] = None,
+                 scenario_labels: Optional[Mapping[str, str]] = None, method: str = "gcn", study=None,
+                 n_boot: int = N_BOOT) -> dict[str, Path]:
+    """Collect a study's cells and write into `monolib.paths.figures_dir(study)`:
+
+    - ``results.csv``: one row per (method, scenario, threshold, seed, metric, k) number;
+    - ``intervals.csv``: per (method, scenario, threshold, metric, k) the mean and its 95 % bootstrap interval over
+      test settings, queries and seeds (`intervals`, ``n_boot`` resamples, numpy seed 0);
+    - ``threshold_tests.csv``: each threshold against its scenario's best (`threshold_tests`);
+    - Table 1 and 2 (md, csv, tex) with the intervals and a dagger on thresholds significantly below the best;
+      scenarios with ``in_tables: false`` are left out of the tables and of ``recall_vs_threshold.png``;
+    - ``recall_vs_threshold.png`` (error bars: the intervals) and ``fig5_matches.png`` (skipped when `rgb_of` is
+      None or the study has no `method` cell);
+    - ``encoder_ablation.{md,csv}`` when the study has encoder variants;
+    - ``recall_by_light.png`` + ``light.csv`` when the dataset records dim settings (``monolib_synth.json``);
+    - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``.
+
+    `study_name` is a name or a loaded `monolib.params.Study`; `study` (default: ``params/<name>.yaml`` when it
+    loads) gives variant descriptions, scenario information and the dataset folder. Labels default to the
+    ``scenario_label`` the cells recorded. Returns ``{"results": path, "intervals": path, "table1_md": path, ...}``.
     """
+    if not isinstance(study_name, (str, Path)):
+        study, study_name = study_name, study_name.name
+    study_name = str(study_name)
+    if study is None:
+        study = _load_study(study_name)
     out = paths.figures_dir(study_name)
     results = collect(study_name)
     labels = {**recorded_labels(study_name), **dict(scenario_labels or {})}
     written: dict[str, Path] = {}
     io.write_text(out / "results.csv", results.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
     written["results"] = out / "results.csv"
-    written.update(write_tables(results, out, labels))
-    written["recall_vs_threshold"] = fig_recall_vs_threshold(results, out / "recall_vs_threshold.png", method,
-                                                             scenario_labels=labels)
-    if rgb_of is not None and (results["method"] == method).any():
-        written["fig5_matches"] = fig_matches(study_name, rgb_of, out / "fig5_matches.png", method, results=results,
-                                              scenario_labels=labels)
+
+    qv = query_table(study_name)
+    boot = Bootstrap.for_queries(qv, n_boot)
+    iv = intervals(qv, boot)
+    tests = threshold_tests(qv, iv, boot)
+    io.write_text(out / "intervals.csv", _csv(iv))
+    written["intervals"] = out / "intervals.csv"
+    io.write_text(out / "threshold_tests.csv", _csv(tests))
+    written["threshold_tests"] = out / "threshold_tests.csv"
+
+    info = scenario_info(study_name, study)
+    hidden = set(info.loc[~info["in_tables"].astype(bool), "scenario"])
+    in_tables = results[~results["scenario"].isin(hidden)]
+    written.update(write_tables(in_tables, out, labels, iv, tests, n_boot))
+    written["recall_vs_threshold"] = fig_recall_vs_threshold(in_tables, out / "recall_vs_threshold.png", method,
+                                                             scenario_labels=labels, intervals=iv)
+    if rgb_of is not None and (in_tables["method"] == method).any():
+        written["fig5_matches"] = fig_matches(study_name, rgb_of, out / "fig5_matches.png", method,
+                                              results=in_tables, scenario_labels=labels)
+
+    ablation = encoder_ablation(qv, iv, boot, study, base=method)
+    if len(ablation):
+        io.write_text(out / "encoder_ablation.md", ablation_markdown(ablation, labels, method, n_boot))
+        io.write_text(out / "encoder_ablation.csv", _csv(ablation))
+        written["encoder_ablation_md"] = out / "encoder_ablation.md"
+        written["encoder_ablation_csv"] = out / "encoder_ablation.csv"
+
+    dim_of = dim_settings(study_name, study)
+    if dim_of is None:
+        print(f"{study_name}: no monolib_synth.json with dim settings: recall_by_light.png not drawn")
+    elif not any(dim_of.get(s, False) for s in qv["setting"].unique()):
+        print(f"{study_name}: no dim test setting among the queries: recall_by_light.png not drawn")
+    else:
+        shown = [sc for sc in qv["scenario"].unique() if sc not in hidden]
+        light = light_table(qv, iv, boot, dim_of, shown, method)
+        io.write_text(out / "light.csv", _csv(light))
+        written["light"] = out / "light.csv"
+        written["recall_by_light"] = fig_recall_by_light(light, out / "recall_by_light.png", method, n_boot=n_boot)
+
+    depth = depth_scale_table(qv, iv, boot, info, method)
+    if depth.empty:
+        print(f"{study_name}: no scenario with depth_scale != 1 (and {method} cells): recall_vs_depth_scale.png "
+              f"not drawn")
+    else:
+        io.write_text(out / "depth_scale.csv", _csv(depth))
+        written["depth_scale"] = out / "depth_scale.csv"
+        written["recall_vs_depth_scale"] = fig_recall_vs_depth_scale(depth, out / "recall_vs_depth_scale.png",
+                                                                     n_boot=n_boot)
     log.info("report of %s written to %s", study_name, out)
     return written
-

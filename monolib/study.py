@@ -39,11 +39,16 @@ class CellSpec:
 def grid(study: Study) -> list[CellSpec]:
     """Every cell of the study: graph methods x scenarios x thresholds x seeds, image methods x seeds."""
     cells = []
-    for m in study.methods:
-        if methods.kind(m) == "graph":
-            cells += [CellSpec(m, sc, t, s) for sc in study.scenarios for t in study.thresholds for s in study.seeds]
-        else:
+    for m in study.methods + list(study.variants):
+        if methods.kind(m, study) == "image":
             cells += [CellSpec(m, "rgb", math.inf, s) for s in study.seeds]
+            continue
+        v = study.variants.get(m)
+        scenarios = (v.scenarios if v and v.scenarios else None) or [
+            n for n, sc in study.scenarios.items() if sc.in_tables or m == "gcn"]
+        for sc in scenarios:
+            thresholds = (v.thresholds if v and v.thresholds else None) or study.scenarios[sc].thresholds or study.thresholds
+            cells += [CellSpec(m, sc, t, s) for t in thresholds for s in study.seeds]
     return cells
 
 
@@ -120,7 +125,23 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True) -> di
 def needs_perception(study: Study) -> bool:
     return not study.graphs_root and any(
         sc.depth != "gt" or sc.semantic != "gt" for sc in study.scenarios.values()
-    ) and any(methods.kind(m) == "graph" for m in study.methods)
+    ) and bool(study.graph_methods())
+
+
+def write_run_record(study: Study, times: dict, path: Path) -> None:
+    """How long each stage of this run took, and on what machine (the README quotes it)."""
+    import platform
+
+    import torch
+
+    from monolib.io import write_json
+
+    record = {"study": study.name, "stage_seconds": {k[:-2]: round(v, 1) for k, v in times.items()},
+              "total_seconds": round(sum(times.values()), 1), "cpus": os.cpu_count(),
+              "machine": f"{platform.machine()} {platform.processor()}".strip(), "python": platform.python_version(),
+              "torch": torch.__version__, "torch_threads": study.threads, "jobs": study.jobs,
+              "date": time.strftime("%Y-%m-%d")}
+    write_json(path, record)
 
 
 def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
@@ -134,6 +155,9 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     if not study.graphs_root:
         print(f"[1/5] dataset: {study.dataset_root}", flush=True)
         dataset.ensure_dataset(study, progress=progress)
+        from monolib import viz
+
+        viz.save_dataset_mosaic(study, paths.figures_dir(study.name) / "frames.png")
     else:
         print(f"[1/5] dataset: published graphs in {study.graphs_root}", flush=True)
     times["dataset_s"] = time.perf_counter() - t
@@ -149,7 +173,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     times["perception_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    if any(methods.kind(m) == "graph" for m in study.methods):
+    if study.graph_methods():
         print(f"[3/5] graphs: {len(study.scenarios)} scenarios", flush=True)
         for sc in study.scenarios:
             scenegraphs.build(study, sc, progress=progress)
@@ -157,7 +181,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
 
     t = time.perf_counter()
     print("[4/5] cells", flush=True)
-    run_grid(study, jobs, progress)
+    grid_run = run_grid(study, jobs, progress)
     times["cells_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -165,6 +189,13 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     execute(REPORT_NOTEBOOK, study.dir / "notebooks" / "report.ipynb", {"study": study.path}, study.cell_timeout)
     times["report_s"] = time.perf_counter() - t
     out = paths.figures_dir(study.name)
+    if grid_run["ran"] or not (out / "timings.json").is_file():  # a cached re-run keeps the record of the real run
+        write_run_record(study, times, out / "timings.json")
+    if study.name == paths.DEFAULT_STUDY:
+        from monolib import readme
+
+        if readme.update():
+            print("README.md: result blocks updated from figures/", flush=True)
     print(f"done: tables and figures in {out} (table1_recall.md, table2_precision.md, results.csv); "
           f"executed notebooks in {study.dir / 'notebooks'}", flush=True)
     return times

@@ -36,6 +36,7 @@ VOLUME0 = 900
 FORMAT_VERSION = 3  # bump when the generator changes: finished settings with another version are re-rendered
 FOV_X = math.pi / 3
 H5_COMPRESSION = 9
+N_PANS = 4  # each scene pans through N_PANS + 1 look-at targets on room content
 
 # ai_037_002's tilt-shift camera (metadata_camera_parameters.csv of ml-hypersim)
 TILT_SHIFT_M = ((0.579607251426182, 0.0, -0.06955286861651404),
@@ -115,8 +116,10 @@ def _palette(seed: int) -> dict[str, list[Material]]:
     rng = np.random.default_rng([seed, 6007])
     u = rng.uniform
     P: dict[str, list[Material]] = {}
-    P["paint"] = [Material(PAINT, _hsv(h, u(0.08, 0.3), u(0.7, 0.92)), seed=u(0, 100))
-                  for h in (0.08, 0.13, 0.3, 0.55, 0.62, 0.95)] + [Material(PAINT, _hsv(0.1, 0.03, 0.9), seed=1.0)]
+    # wall paints: mostly the neutrals of real rooms (white, off-white, grey, beige), a few pale colours
+    P["paint"] = [Material(PAINT, _hsv(h, sat, v), seed=u(0, 100))
+                  for h, sat, v in ((0.1, 0.02, 0.92), (0.11, 0.07, 0.9), (0.6, 0.03, 0.78), (0.1, 0.15, 0.85),
+                                    (0.58, 0.12, 0.85), (0.3, 0.12, 0.82), (0.95, 0.1, 0.88))]
     P["wood"] = [Material(WOOD, _hsv(u(0.05, 0.1), u(0.35, 0.7), v), _hsv(u(0.04, 0.09), u(0.5, 0.8), v * 0.55),
                           u(50, 110), u(0, 100)) for v in (0.35, 0.5, 0.65, 0.8)]
     P["floorwood"] = [Material(WOOD, _hsv(u(0.05, 0.1), u(0.35, 0.65), v), _hsv(u(0.04, 0.09), u(0.5, 0.8), v * 0.5),
@@ -146,7 +149,8 @@ def _family_materials(rng: np.random.Generator, room: str, P: dict) -> dict[str,
     u = rng.uniform
     pick = lambda key: P[key][int(rng.integers(len(P[key])))]
     m: dict[str, Material] = {}
-    m["wall"] = pick("paint")
+    wp = np.array([0.22, 0.2, 0.16, 0.16, 0.1, 0.08, 0.08])
+    m["wall"] = P["paint"][int(rng.choice(len(wp), p=wp))]
     m["wall2"] = pick("paint")  # accent wall (same for every member)
     m["ceiling"] = Material(PAINT, _hsv(0.1, 0.03, 0.93), seed=3.0)
     if room in ("kitchen", "bathroom"):
@@ -213,7 +217,8 @@ def _albedo(mat: Material, p: np.ndarray) -> np.ndarray:
         t = (p[:, 1] * 0.7 + p[:, 2]) * mat.scale + 2.5 * _wave_noise(p, mat.seed, 2.0) + 4 * np.sin(p[:, 0] * 1.3)
         g = (0.5 + 0.5 * np.sin(t)) ** 3
         plank = _hash(np.floor(p[:, 1] / 0.18), seed=mat.seed)[:, None] * 0.2 + 0.9
-        return (base * (1 - g[:, None]) + alt * g[:, None]) * plank
+        g = 0.6 * g[:, None]
+        return (base * (1 - g) + alt * g) * plank
     if mat.kind == FABRIC:
         w = np.sin(p[:, 0] * mat.scale) * np.sin((p[:, 1] + p[:, 2]) * mat.scale)
         return base * (0.9 + 0.06 * w + 0.06 * _wave_noise(p, mat.seed, 6.0))[:, None]
@@ -602,6 +607,9 @@ class Family:
     items: list  # (kind, dims (w, d, h), extra dict)
     wall_key: list  # wall material key per wall
     temp: float = 0.5
+    n_lights: int = 2  # ceiling fixtures (dim settings: one)
+    window_level: float = 2.0  # daylight through the windows (dim settings: dusk)
+    glass: bool = True  # windows glazed (else open: rays escape, invalid pixels)
 
 
 def make_family(seed: int, index: int, room: str) -> Family:
@@ -631,7 +639,8 @@ def make_family(seed: int, index: int, room: str) -> Family:
     wall_key = ["wall"] * 4
     if rng.uniform() < 0.5:
         wall_key[int(rng.integers(4))] = "wall2"
-    return Family(index, room, (W, D, H), mats, items, wall_key, temp)
+    return Family(index, room, (W, D, H), mats, items, wall_key, temp, int(rng.integers(1, 4)),
+                  float(rng.uniform(1.5, 3.0)), bool(rng.uniform() < 0.85))
 
 
 # =============================================================================================================
@@ -683,23 +692,22 @@ def _overlaps(r, rects, pad=0.05):
 def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout:
     rng = np.random.default_rng([seed, 104729, setting_index])
     W, D, H = fam.size
-    W *= rng.uniform(0.93, 1.07)
-    D *= rng.uniform(0.93, 1.07)
+    orng = np.random.default_rng([seed, 7919, fam.index, 1])  # doors and windows: shared by the family
     items: list[Item] = []
     rects: list = []
     wall_used: dict[int, list] = {w: [] for w in range(4)}  # intervals along each wall taken by mounts/windows
     openings = []
 
     # doors and windows
-    n_doors = 1 + int(rng.uniform() < 0.25)
-    n_windows = int(rng.integers(0 if fam.room == "bathroom" else 1, 3 if min(W, D) > 3.5 else 2))
+    n_doors = 1 + int(orng.uniform() < 0.25)
+    n_windows = int(orng.integers(0 if fam.room == "bathroom" else 1, 3 if min(W, D) > 3.5 else 2))
     for kind, n in (("door", n_doors), ("window", n_windows)):
         for _ in range(n):
             for _try in range(30):
-                w = int(rng.integers(4))
+                w = int(orng.integers(4))
                 o, t, nrm, L = _wall_frame(w, W, D)
-                ow = rng.uniform(0.8, 0.95) if kind == "door" else rng.uniform(0.9, min(2.2, L - 0.8))
-                s0 = rng.uniform(0.3, L - ow - 0.3) if L - ow - 0.6 > 0 else None
+                ow = orng.uniform(0.8, 0.95) if kind == "door" else orng.uniform(0.9, min(2.2, L - 0.8))
+                s0 = orng.uniform(0.3, L - ow - 0.3) if L - ow - 0.6 > 0 else None
                 if s0 is None or any(s0 < b + 0.2 and a < s0 + ow + 0.2 for a, b in wall_used[w]):
                     continue
                 wall_used[w].append((s0, s0 + ow))
@@ -708,8 +716,8 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
                     c = o + t * (s0 + ow / 2) + nrm * 0.5
                     rects.append(_footprint(c[0], c[1], w * math.pi / 2, ow + 0.2, 1.0))  # keep the swing free
                 else:
-                    z0 = rng.uniform(0.8, 1.0)
-                    z1 = min(H - 0.25, z0 + rng.uniform(1.1, 1.6))
+                    z0 = orng.uniform(0.8, 1.0)
+                    z1 = min(H - 0.25, z0 + orng.uniform(1.1, 1.6))
                 openings.append((w, s0, s0 + ow, z0, z1, kind))
                 break
 
@@ -855,19 +863,23 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
             rects.append(fp)
 
     # lights: 1-3 ceiling lights (dim settings: one weak warm lamp-like light)
-    n_lights = 1 if dim else int(rng.integers(1, 4))
-    temp = fam.temp + rng.uniform(-0.1, 0.1)
+    # the fixtures are the family's (same positions and colour); a dim setting has only one, weak, light on
+    lrng = np.random.default_rng([seed, 7919, fam.index, 2])
+    n_lights = 1 if dim else fam.n_lights
+    temp = fam.temp
     rgb = np.array([1.0, 0.85 + 0.12 * temp, 0.65 + 0.35 * temp])
     lights = []
-    level = rng.uniform(0.8, 1.25) * (0.25 if dim else 1.0)
-    for k in range(n_lights):
-        pos = np.array([rng.uniform(0.25, 0.75) * W, rng.uniform(0.25, 0.75) * D, H - 0.25])
-        lights.append((pos, rgb * level * rng.uniform(4.0, 6.0) * (W * D / 20.0) ** 0.5 / n_lights ** 0.5))
+    level = rng.uniform(0.9, 1.1) * (0.25 if dim else 1.0)
+    for k in range(fam.n_lights):
+        pos = np.array([lrng.uniform(0.25, 0.75) * W, lrng.uniform(0.25, 0.75) * D, H - 0.25])
+        power = lrng.uniform(4.0, 6.0) * (W * D / 20.0) ** 0.5 / fam.n_lights ** 0.5
+        if k < n_lights:
+            lights.append((pos, rgb * level * power))
         items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2, 0.18, 0.08), "shade"),
                                                           (_cyl(0, 0, -0.12, 0.01, 0.12), "metal")])],
                           0.3, 0.3, 0.2, float(pos[0]), float(pos[1]), 0.0, H))
-    ambient = rgb * (0.22 if not dim else 0.015) * rng.uniform(0.8, 1.2)
-    window_emission = np.array([0.9, 1.0, 1.2]) * (rng.uniform(1.5, 3.0) if not dim else 0.04)
+    ambient = rgb * (0.22 if not dim else 0.015)
+    window_emission = np.array([0.9, 1.0, 1.2]) * (fam.window_level if not dim else 0.04)
     return Layout(W, D, H, items, rects, lights, ambient, window_emission, openings)
 
 
@@ -974,7 +986,7 @@ def build_mesh(fam: Family, lay: Layout, seed: int, setting_index: int) -> Scene
                          (_box((a - 0.05, -0.13, z1), (b + 0.05, 0.02, z1 + 0.05)), "frame"),
                          (_box((a - 0.08, -0.13, z0 - 0.05), (b + 0.08, 0.05, z0)), "frame"),
                          (_box(((a + b) / 2 - 0.02, -0.08, z0), ((a + b) / 2 + 0.02, -0.05, z1)), "frame")]
-                if rng.uniform() < 0.85:  # glass pane (else the opening is left open: invalid pixels beyond)
+                if fam.glass:  # glass pane (else the opening is left open: invalid pixels beyond)
                     parts.append((_box((a, -0.07, z0), (b, -0.06, z1)), "glass"))
                 add_obj(ID["window"], parts, T, "window")
                 r = rng.uniform()
@@ -1022,13 +1034,14 @@ def look_rotation(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int) -> list:
     """1-3 scenes; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres)."""
     rng = np.random.default_rng([seed, 32452843, setting_index])
-    n_scenes = int(min(rng.integers(1, 4), max(1, n_frames // 3)))
+    n_scenes = int(min(rng.integers(1, 4) if n_frames < 24 else rng.integers(2, 4), max(1, n_frames // 3)))
     counts = [n_frames // n_scenes + (1 if k < n_frames % n_scenes else 0) for k in range(n_scenes)]
     res = 0.1
     nx, ny = int(lay.W / res), int(lay.D / res)
     gx, gy = (np.arange(nx) + 0.5) * res, (np.arange(ny) + 0.5) * res
     X, Y = np.meshgrid(gx, gy, indexing="ij")
-    free = (X > 0.5) & (X < lay.W - 0.5) & (Y > 0.5) & (Y < lay.D - 0.5)
+    m = 0.8 if min(lay.W, lay.D) > 3.6 else 0.5
+    free = (X > m) & (X < lay.W - m) & (Y > m) & (Y < lay.D - m)
     for r in lay.rects:
         free &= ~((X > r[0] - 0.3) & (X < r[2] + 0.3) & (Y > r[1] - 0.3) & (Y < r[3] + 0.3))
     if not free.any():
@@ -1047,18 +1060,24 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int)
         p = np.array([gx[fi[k]], gy[fj[k]]]) + rng.uniform(-0.04, 0.04, 2)
         # look towards the far side of the room: choose targets far from the start
         far = [q for q in interest if np.linalg.norm(q[:2] - p) > 1.6] or interest
-        A = far[int(rng.integers(len(far)))]
-        # B: a second target 60-160 degrees away (as seen from the start), so each scene pans across the room
         ang = lambda q: math.atan2(q[1] - p[1], q[0] - p[0])
-        sep = [q for q in interest if np.linalg.norm(q[:2] - p) > 1.0
-               and math.radians(60) < abs((ang(q) - ang(A) + math.pi) % (2 * math.pi) - math.pi) < math.radians(160)]
-        B = sep[int(rng.integers(len(sep)))] if sep else far[int(rng.integers(len(far)))]
-        heading = math.atan2(*(A[:2] - p)[::-1]) + rng.choice([-1, 1]) * math.pi / 2
-        length = rng.uniform(1.2, 3.5)
+        wrap = lambda x: (x + math.pi) % (2 * math.pi) - math.pi
+        # three look-at targets on room content, each 50-150 degrees from the previous (as seen from the start):
+        # every scene pans widely across the room, so frames of one scene differ
+        targets = [far[int(rng.integers(len(far)))]]
+        sign = rng.choice([-1.0, 1.0])
+        for _k in range(N_PANS):
+            prev = ang(targets[-1])
+            sep = [q for q in interest if np.linalg.norm(q[:2] - p) > 1.6
+                   and math.radians(60) < sign * wrap(ang(q) - prev) < math.radians(140)]
+            targets.append(sep[int(rng.integers(len(sep)))] if sep else
+                           np.r_[p + 2.0 * np.array([math.cos(prev + sign * 1.6), math.sin(prev + sign * 1.6)]), 0.8])
+        heading = ang(targets[0]) + rng.choice([-1, 1]) * math.pi / 2
+        length = rng.uniform(1.5, 4.5)
         step = length / max(1, n - 1)
         pts = [p.copy()]
         sub = 4
-        for s in range((n - 1) * sub):
+        for _s in range((n - 1) * sub):
             heading += rng.normal(0, 0.12)
             for _t in range(16):
                 q = pts[-1] + step / sub * np.array([math.cos(heading), math.sin(heading)])
@@ -1071,19 +1090,20 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int)
         pts = np.array(pts[::sub])[:n]
         h0 = rng.uniform(1.0, 1.8)
         eyes = np.c_[pts, np.clip(h0 + 0.03 * np.sin(np.linspace(0, 3, n) + rng.uniform(0, 6)), 1.0, 1.8)]
-        s = np.linspace(0, 1, n)[:, None]
-        looks = A * (1 - s) + B * s
-        Rs = []
-        for e, l in zip(eyes, looks):
-            d = l - e
-            horiz = np.linalg.norm(d[:2])
-            if horiz < 0.5:  # too close: look further along the same direction
-                d[:2] = d[:2] / max(horiz, 1e-6) * 1.5 if horiz > 1e-6 else np.array([1.5, 0.0])
-                horiz = 1.5
-            pitch = np.clip(math.atan2(d[2], horiz), math.radians(-22), math.radians(4))
-            d = np.r_[d[:2] / horiz, math.tan(pitch)]
+        # yaw and pitch interpolated through the targets (yaw along the panning direction)
+        yaws = [ang(targets[0])]
+        for q in targets[1:]:
+            yaws.append(yaws[-1] + wrap(ang(q) - ang(targets[len(yaws) - 1])))
+        pitches = [math.atan2(q[2] - h0, max(0.5, np.linalg.norm(q[:2] - p))) for q in targets]
+        tt = np.linspace(0, N_PANS, n) if n > 1 else np.zeros(1)
+        yaw = np.interp(tt, np.arange(N_PANS + 1), yaws) + rng.normal(0, 0.03, n)
+        pitch = np.clip(np.interp(tt, np.arange(N_PANS + 1), pitches) + rng.normal(0, 0.02, n), math.radians(-22), math.radians(4))
+        Rs, looks = [], []
+        for e, yw, pt, tgt in zip(eyes, yaw, pitch, np.interp(tt, np.arange(N_PANS + 1), [np.linalg.norm(q[:2] - p) for q in targets])):
+            d = np.array([math.cos(yw) * math.cos(pt), math.sin(yw) * math.cos(pt), math.sin(pt)])
             Rs.append(look_rotation(e, e + d))
-        looks = eyes + np.array([-R[:, 2] for R in Rs]) * np.linalg.norm(looks - eyes, axis=1, keepdims=True)
+            looks.append(e + d * max(1.0, float(tgt)))
+        looks = np.array(looks)
         scenes.append((eyes, np.stack(Rs), looks))
     return scenes
 
@@ -1260,7 +1280,37 @@ def build_setting(s: dict, seed: int):
     lay = make_layout(fam, seed, s["index"], s["dim"])
     mesh = build_mesh(fam, lay, seed, s["index"])
     scenes = make_trajectories(lay, s["frames"], seed, s["index"])
-    return fam, lay, mesh, scenes
+    r = Renderer(mesh, lay)
+    scenes = refine_views(r, scenes)
+    return fam, lay, mesh, scenes, r
+
+
+def refine_views(r: "Renderer", scenes: list, min_depth: float = 1.8) -> list:
+    """Turn a frame that faces a wall or furniture at arm's length towards open room (probe: 12x9 rays)."""
+    probe = Camera.canonical(12, 9).rays(9, 12).reshape(-1, 3)
+    probe = probe / np.linalg.norm(probe, axis=1, keepdims=True)
+    offsets = [0.0] + [sgn * k * math.radians(20) for k in range(1, 9) for sgn in (1, -1)]
+    out = []
+    for eyes, Rs, looks in scenes:
+        Rs, looks = Rs.copy(), looks.copy()
+        for i, (e, R) in enumerate(zip(eyes, Rs)):
+            f = -R[:, 2]
+            yaw0, pitch = math.atan2(f[1], f[0]), math.asin(np.clip(f[2], -1, 1))
+            best = (-1.0, None)
+            for off in offsets:
+                yw = yaw0 + off
+                d = np.array([math.cos(yw) * math.cos(pitch), math.sin(yw) * math.cos(pitch), math.sin(pitch)])
+                Rc = look_rotation(e, e + d)
+                tri, t = r.cast(e, probe @ Rc.T)
+                med = float(np.nanmedian(np.where(tri >= 0, t, 10.0)))
+                if med > best[0]:
+                    best = (med, Rc)
+                if med >= min_depth:
+                    break
+            Rs[i] = best[1]
+            looks[i] = e - best[1][:, 2] * max(1.0, min(best[0], 4.0))
+        out.append((eyes, Rs, looks))
+    return out
 
 
 def _write_csv(path: Path, header: list, rows: list) -> None:
@@ -1282,11 +1332,11 @@ def _write_jpg(path: Path, rgb: np.ndarray) -> None:
 
 
 def render_setting(s: dict, study_key: dict, width: int, height: int, seed: int, out: Path,
-                   timing: Optional[dict] = None, compression: int = H5_COMPRESSION) -> dict:
+                   timing: Optional[dict] = None, compression: Optional[int] = None) -> dict:
     """Render setting `s` into folder `out` (created). Returns per-setting info (scenes, frames, classes)."""
     t0 = time.perf_counter()
-    fam, lay, mesh, scenes = build_setting(s, seed)
-    r = Renderer(mesh, lay)
+    compression = H5_COMPRESSION if compression is None else compression
+    fam, lay, mesh, scenes, r = build_setting(s, seed)
     if timing is not None:
         timing["build"] = timing.get("build", 0.0) + time.perf_counter() - t0
     mpau = float(s["meters_per_asset_unit"])

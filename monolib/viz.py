@@ -60,3 +60,17 @@ def training_curves(folder: str | Path):
     b.set_xlabel("epoch"), b.set_ylabel("validation recall@1 (%)")
     fig.tight_layout()
     return fig
+
+
+def save_dataset_mosaic(study, path) -> None:
+    """`frames.png`: one test frame of every test setting of a study (the README's grid of rooms)."""
+    from monolib import dataset
+    from monolib.io import save_figure
+
+    ds = dataset.open_dataset(study)
+    sel = dataset.select_frames(study, ds, study.gcn.val_settings)
+    per = study.protocol.frames
+    frames = [sel.test[i * per + per // 3] for i in range(len(sel.test) // per)]
+    fig = rgb_mosaic(frames, columns=min(8, len(frames)))
+    save_figure(fig, path)
+    plt.close(fig)

@@ -51,3 +51,26 @@ def test_training_lowers_the_loss_and_is_deterministic():
     r2 = train(graphs[:18], graphs[18:], spec, seed=0, threads=1)
     assert [h["train_loss"] for h in r2.history] == pytest.approx(losses)
     torch.testing.assert_close(embed(r1.model, graphs), embed(r2.model, graphs))
+
+
+@pytest.mark.parametrize("choice", [
+    {"edges": "upper", "linear": False},
+    {"label": "embedding", "colour": "standardised"},
+    {"label": "onehot"},
+    {"edge_weight": "inverse"},
+    {"conv": "gine"},
+    {"conv": "gatv2"},
+    {"pooling": "meanmax"},
+    {"mining": "batch_hard"},
+])
+def test_every_encoder_variant_trains_and_embeds(choice):
+    import dataclasses
+
+    spec = dataclasses.replace(GCNSpec(epochs=2, batch_size=8, patience=5), **choice)
+    graphs = toy_graphs()
+    graphs = [at_threshold(complete_graph(g.x, g.pos, g.setting, g.frame), 1.5, spec.edges == "both") for g in graphs]
+    empty = at_threshold(complete_graph(np.zeros((0, 4)), np.zeros((0, 3)), "ai_900_009", "e"), 1.5)
+    result = train(graphs[:18], graphs[18:], spec, seed=0, threads=1)
+    z = embed(result.model, graphs + [empty])
+    assert z.shape == (len(graphs) + 1, result.model.out_channels) and torch.isfinite(z).all()
+    assert all(np.isfinite(h["train_loss"]) for h in result.history)

@@ -83,7 +83,7 @@ def test_grouped_median_matches_numpy_on_even_and_odd_groups():
     rng = np.random.default_rng(0)
     labels = rng.integers(1, 41, 5001)
     values = rng.normal(size=(5001, 3)) * 100
-    uniq, med = grouped_median(labels, values)
+    uniq, med = grouped_median(labels, values.T)
     for i, label in enumerate(uniq):
         np.testing.assert_allclose(med[i], np.median(values[labels == label], axis=0), rtol=1e-9, atol=1e-9)
 

@@ -269,3 +269,200 @@ def test_report_notebook_is_thin_and_clean():
         tree = ast.parse(c.source)
         assert not [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))]
     assert any(c.source.startswith("# NBVAL_IGNORE_OUTPUT") and "table1" in c.source for c in code)
+
+
+# ---- bootstrap intervals and paired tests --------------------------------------------------------------------------
+
+SETTINGS = [f"ai_010_{i:03d}" for i in range(1, 7)]
+
+
+def draw_rankings(hit_of, seed: int = 0, settings=SETTINGS, queries: int = 5) -> pd.DataFrame:
+    """Top-10 rankings: rank 1 is the setting's positive 0090 when ``hit_of(setting, i, seed)``, else a frame of
+    the next setting; rank 6 is always the second positive 0091; the other ranks are frames of other settings."""
+    rows = []
+    for j, s in enumerate(settings):
+        other = settings[(j + 1) % len(settings)]
+        for i in range(queries):
+            q = key(s, i)
+            ms = [key(other, 50 + r) for r in range(10)]
+            if hit_of(s, i, seed):
+                ms[0] = key(s, 90)
+            ms[5] = key(s, 91)
+            rows += [(q, s, r, m, m.split("/")[0], 0.1 * r) for r, m in enumerate(ms, 1)]
+    return pd.DataFrame(rows, columns=report.RANKING_COLUMNS)
+
+
+def query_rows(hit_of, seeds=(0, 1, 2), **kw) -> pd.DataFrame:
+    parts = []
+    for sd in seeds:
+        q = report.per_query_values(draw_rankings(hit_of, sd, **kw), [1, 5], [2, 6])
+        q.insert(0, "seed", sd)
+        parts.append(q)
+    return pd.concat(parts, ignore_index=True)
+
+
+def interval_of(rows: pd.DataFrame, col: str = "recall@1", n_boot: int = 1000):
+    cols = report._metric_cols(rows)
+    boot = report.Bootstrap(rows["seed"].nunique(), rows["setting"].nunique(),
+                            int(rows.groupby(["seed", "setting"]).size().max()), n_boot)
+    iv = boot.interval(*boot.cube(rows, cols))
+    j = cols.index(col)
+    return iv["mean"][j], iv["ci_lo"][j], iv["ci_hi"][j]
+
+
+def test_per_query_values_average_to_the_metrics():
+    q = report.per_query_values(rankings_of(HAND), [1, 2, 3], [2, 3])
+    assert list(q.columns) == ["query", "setting", "recall@1", "recall@2", "recall@3", "precision@2", "precision@3"]
+    assert q.drop(columns=["query", "setting"]).mean().to_dict() == pytest.approx(
+        report.recompute_metrics(rankings_of(HAND), [1, 2, 3], [2, 3]))
+
+
+def test_interval_when_every_query_hits_is_100():
+    mean, lo, hi = interval_of(query_rows(lambda s, i, sd: True))
+    assert (mean, lo, hi) == (100.0, 100.0, 100.0)
+
+
+def test_interval_half_the_settings_hit_is_wide_around_50():
+    rows = query_rows(lambda s, i, sd: SETTINGS.index(s) % 2 == 0)
+    mean, lo, hi = interval_of(rows)
+    assert mean == pytest.approx(50.0)
+    assert lo < 50.0 < hi and lo <= 30.0 and hi >= 70.0       # 6 settings: the spread of the setting draw
+    # precision@6: every query has the second positive at rank 6 -> 1/6, plus 1/6 on the hits
+    assert interval_of(rows, "precision@6")[0] == pytest.approx(100.0 * (1 + 0.5) / 6)
+
+
+def test_paired_difference_of_a_cell_with_itself_is_exactly_zero():
+    rows = query_rows(lambda s, i, sd: (i + sd) % 3 == 0)
+    boot = report.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0))
+    d = report.paired_difference(rows, rows, boot)
+    assert (d["diff"] == 0).all() and (d["ci_lo"] == 0).all() and (d["ci_hi"] == 0).all()
+    assert not d["significant"].any()
+    assert d["n_seeds"].tolist() == [3] * 4 and d["n_queries"].tolist() == [3 * 6 * 5] * 4
+
+
+def test_same_resample_indices_for_every_group():
+    rows = query_rows(lambda s, i, sd: (i * 7 + sd + SETTINGS.index(s)) % 4 == 0)
+    boot = report.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0), n_boot=200)
+    values, nq = boot.cube(rows, ["recall@1"])
+    a = boot.resample(values, nq)
+    b = boot.resample(values + 5.0, nq)            # another group of the same shape: shifted by exactly 5
+    np.testing.assert_allclose(b - a, 5.0, atol=1e-9)
+    np.testing.assert_array_equal(boot.resample(values, nq), a)
+
+
+# ---- a richer fake study: seeds, variants, a scaled-depth scenario, dim settings ----------------------------------
+
+P_HIT = {("gcn", "s1", 1.0): 0.9, ("gcn", "s1", math.inf): 0.15, ("gcn", "s1x2", 1.0): 0.5,
+         ("gcn", "s1x2", math.inf): 0.15, ("gcn_gine", "s1", 1.0): 0.9, ("gcn_bad", "s1", 1.0): 0.2,
+         ("color_hist", "rgb", math.inf): 0.5}
+DIM = set(SETTINGS[:2])
+
+
+def _u(*parts) -> float:
+    return int(hashlib.sha256("/".join(map(str, parts)).encode()).hexdigest()[:8], 16) / 2 ** 32
+
+
+def write_rich_cell(study, method, scenario, threshold, seed):
+    p = P_HIT[(method, scenario, threshold)]
+    hit = lambda s, i, sd: _u(method, scenario, threshold, s, i, sd) < (p * 0.5 if s in DIM else p)
+    r = draw_rankings(hit, seed, queries=6)
+    d = paths.cell_dir(study, method, scenario, threshold, seed)
+    d.mkdir(parents=True)
+    r.to_csv(d / "rankings.csv", index=False)
+    cell = {"method": method, "scenario": scenario, "threshold": "inf" if math.isinf(threshold) else threshold,
+            "seed": seed, "study": study, "scenario_label": scenario, "metrics":
+            report.recompute_metrics(r, [1, 5, 10], [2, 4, 6])}
+    (d / "cell.json").write_text(json.dumps(cell))
+
+
+@pytest.fixture
+def rich(tmp_path, monkeypatch):
+    from monolib import io, params
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
+    spec = params.Study(
+        name="rich", seeds=[0, 1, 2], thresholds=[1.0, math.inf], methods=["gcn", "color_hist"],
+        scenarios={"s1": params.Scenario(label="GT depth, GT semantics"),
+                   "s1x2": params.Scenario(label="GT depth x 2", depth_scale=2.0, in_tables=False)},
+        variants={"gcn_gine": params.Variant(gcn={"conv": "gine"}, scenarios=["s1"], thresholds=[1.0],
+                                             description="GINEConv reading edge lengths"),
+                  "gcn_bad": params.Variant(gcn={"layers": 1}, scenarios=["s1"], thresholds=[1.0],
+                                            description="one layer")})
+    for (m, sc, t) in P_HIT:
+        for sd in spec.seeds:
+            write_rich_cell(spec.name, m, sc, t, sd)
+    io.write_json(spec.dataset_root / "monolib_synth.json",
+                  {"settings": [{"name": s, "dim": s in DIM, "split": "test"} for s in SETTINGS]})
+    return spec
+
+
+def test_threshold_tests_mark_the_clearly_worse_threshold(rich):
+    qv = report.query_table(rich.name)
+    boot = report.Bootstrap.for_queries(qv)
+    iv = report.intervals(qv, boot)
+    assert list(iv.columns) == report.INTERVAL_COLUMNS and set(iv["n_seeds"]) == {3}
+    tt = report.threshold_tests(qv, iv, boot)
+    row = tt[(tt.method == "gcn") & (tt.scenario == "s1") & (tt.metric == "recall") & (tt.k == 1)].iloc[0]
+    assert row["threshold"] == math.inf and row["best_threshold"] == 1.0
+    assert row["diff"] < -50 and row["ci_hi"] < 0 and row["significant"]
+    # recall@10 is 100 at every threshold (the second positive is at rank 6): differences exactly 0
+    r10 = tt[(tt.metric == "recall") & (tt.k == 10)]
+    assert len(r10) and (r10["diff"] == 0).all() and not r10["significant"].any()
+
+
+def test_rich_report_tables_ablation_light_depth(rich, capsys):
+    written = report.write_report(rich, n_boot=300)
+    for name in ("intervals", "threshold_tests", "encoder_ablation_md", "encoder_ablation_csv", "light",
+                 "recall_by_light", "depth_scale", "recall_vs_depth_scale"):
+        assert written[name].is_file(), name
+    res = pd.read_csv(written["results"])
+    assert list(res.columns) == report.RESULT_COLUMNS and not res.duplicated(report.RESULT_COLUMNS[:-1]).any()
+    assert list(pd.read_csv(written["intervals"]).columns) == report.INTERVAL_COLUMNS
+
+    md = written["table1_md"].read_text()
+    assert "s1x2" not in md                                  # in_tables: false
+    line = next(l for l in md.splitlines() if l.startswith("|  |  | ∞ |"))
+    assert line.split("|")[4].strip().endswith(report.DAGGER)  # recall@1 at ∞: significantly below t = 1
+    assert "†: significantly below the best threshold" in md and "95% bootstrap interval" in md
+    csv = pd.read_csv(written["table1_csv"])
+    assert list(csv.columns) == ["method", "scenario", "threshold", "k", "mean", "std", "n", "ci_lo", "ci_hi",
+                                 "paper", "worse_than_best"]
+    assert ((csv["ci_lo"] <= csv["mean"] + 1e-9) & (csv["mean"] <= csv["ci_hi"] + 1e-9)).all()
+    assert r"$^\dagger$" in written["table1_tex"].read_text()
+
+    ab = pd.read_csv(written["encoder_ablation_csv"])
+    assert list(dict.fromkeys(ab["method"])) == ["gcn", "gcn_gine", "gcn_bad"]
+    assert set(zip(ab["metric"], ab["k"])) == {("recall", 1), ("precision", 6)}
+    bad = ab[(ab.method == "gcn_bad") & (ab.metric == "recall")].iloc[0]
+    gine = ab[(ab.method == "gcn_gine") & (ab.metric == "recall")].iloc[0]
+    assert bad["significant"] and bad["diff_hi"] < 0
+    assert gine["diff_lo"] <= gine["diff_vs_base"] <= gine["diff_hi"]
+    abmd = written["encoder_ablation_md"].read_text()
+    assert "GINEConv reading edge lengths" in abmd and "Δ recall@1 vs gcn" in abmd
+
+    light = pd.read_csv(written["light"])
+    assert set(light["light"]) == {"dim", "bright", "bright - dim"}
+    g = light[(light.method == "gcn") & (light.light == "dim")].iloc[0]
+    assert g["threshold"] == 1.0 and g["n_settings"] == 2             # s1's best threshold; 2 dim settings
+    assert set(light["method"]) == {"gcn", "color_hist"} and "s1x2" not in set(light["scenario"])
+
+    depth = pd.read_csv(written["depth_scale"])
+    assert set(zip(depth["scenario"], depth["depth_scale"])) == {("s1", 1.0), ("s1x2", 2.0)}
+    x2 = depth[(depth.scenario == "s1x2") & (depth.threshold == 1.0)].iloc[0]
+    assert x2["diff_vs_scale1"] < 0 and np.isfinite(x2["diff_lo"])
+
+
+def test_rich_report_is_deterministic(rich):
+    first = {k: p.read_bytes() for k, p in report.write_report(rich, n_boot=200).items()}
+    again = {k: p.read_bytes() for k, p in report.write_report(rich, n_boot=200).items()}
+    assert again == first
+
+
+def test_controlled_figures_skipped_with_a_note(study, capsys):
+    written = report.write_report(study)
+    out = capsys.readouterr().out
+    assert "recall_by_light" not in written and "no monolib_synth.json" in out
+    assert "recall_vs_depth_scale" not in written and "depth_scale" in out
+    assert "encoder_ablation_md" not in written
+    assert written["intervals"].is_file() and written["threshold_tests"].is_file()

@@ -1,0 +1,186 @@
+"""A localizer people can use: index the frames of known places, then find the place of new RGB images.
+
+`monolib index STUDY --out DB` embeds the study's test frames with the encoder of one finished cell (by default the
+best cell whose scenario uses predicted depth and predicted semantics, since a new image has neither) and stores
+`embeddings.npy`, `frames.csv` and `meta.json` (study, cell, and the tags of the perception models) in DB.
+`monolib localize IMAGE... --db DB` runs segmentation, depth, graph and encoder on each image and prints the
+nearest settings. A new image is centre-cropped to 4:3, resized to the study's resolution and treated as a
+Hypersim canonical camera (60 degree horizontal field of view).
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+
+from monolib import gcn, paths, perception, scenegraphs
+from monolib.graph import scene_nodes
+from monolib.hypersim import Camera
+from monolib.io import atomic_path, read_json, write_json, write_text
+from monolib.params import Study, load_study
+
+
+class LocalizeError(RuntimeError):
+    """A bad image, database or model; the message names the file."""
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An RGB uint8 image from a PNG/JPEG file of any size."""
+    path = Path(path)
+    if not path.is_file():
+        raise LocalizeError(f"{path}: image file not found")
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise LocalizeError(f"{path}: not a readable image (expected PNG or JPEG)")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def to_study_frame(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Centre-crop to 4:3 and resize to the study's frame size."""
+    h, w = rgb.shape[:2]
+    if w * 3 > h * 4:
+        cw = h * 4 // 3
+        rgb = rgb[:, (w - cw) // 2 : (w - cw) // 2 + cw]
+    else:
+        ch = w * 3 // 4
+        rgb = rgb[(h - ch) // 2 : (h - ch) // 2 + ch]
+    return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def pick_cell(study: Study, method: str | None = None) -> dict:
+    """The finished graph-method cell (of `method`, or of any) with the best recall@1 among scenarios with
+    predicted depth and predicted semantics (what a new image has)."""
+    best = None
+    wanted = [method] if method else study.graph_methods()
+    files = [f for m in wanted for f in sorted((paths.study_dir(study.name) / "cells" / m).glob("*/cell.json"))]
+    for f in files:
+        c = read_json(f)
+        sc = study.scenarios.get(c["scenario"])
+        if sc is None or sc.depth == "gt" or sc.semantic == "gt" or sc.depth_scale != 1.0:
+            continue
+        if not (f.parent / "model.pt").is_file():
+            continue
+        if best is None or c["metrics"]["recall@1"] > best[0]["metrics"]["recall@1"]:
+            best = (c, f.parent)
+    if best is None:
+        raise LocalizeError(f"{paths.study_dir(study.name) / 'cells'}: no finished {method or 'graph-method'} cell with "
+                            f"predicted depth and semantics and a saved model.pt; run `monolib study {study.name}` first")
+    return {**best[0], "folder": str(best[1])}
+
+
+def build_index(study: Study, out: str | Path, method: str | None = None) -> Path:
+    """Write the database of the study's test frames (their embeddings and settings) into `out`."""
+    out = Path(out)
+    c = pick_cell(study, method)
+    sc = study.scenarios[c["scenario"]]
+    spec = study.gcn_spec(c["method"])
+    threshold = math.inf if c["threshold"] == "inf" else float(c["threshold"])
+    model = gcn.GraphEncoder(spec)
+    model.load_state_dict(torch.load(Path(c["folder"]) / "model.pt", weights_only=True))
+    test = [scenegraphs.at_threshold(g, threshold, spec.edges == "both")
+            for g in scenegraphs.load(study, c["scenario"])["test"]]
+    emb = gcn.embed(model, test).numpy().astype(np.float32)
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / "embeddings.npy") as tmp:
+        with open(tmp, "wb") as fh:
+            np.save(fh, emb)
+    write_text(out / "frames.csv", pd.DataFrame({"frame": [g.frame for g in test],
+                                                 "setting": [g.setting for g in test]}).to_csv(index=False))
+    with atomic_path(out / "encoder.pt") as tmp:
+        torch.save(model.state_dict(), tmp)
+    write_json(out / "meta.json", {
+        "study": study.name, "study_file": study.path, "cell": c["folder"], "method": c["method"],
+        "scenario": c["scenario"],
+        "threshold": c["threshold"], "seed": c["seed"], "cell_recall@1": c["metrics"]["recall@1"],
+        "models": {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)},
+        "width": study.dataset.width, "height": study.dataset.height, "frames": len(test),
+    })
+    return out
+
+
+@dataclass
+class Localizer:
+    study: Study
+    meta: dict
+    segmentation: torch.nn.Module
+    depth: torch.nn.Module
+    encoder: gcn.GraphEncoder
+    embeddings: torch.Tensor
+    frames: pd.DataFrame
+
+    @staticmethod
+    def open(db: str | Path) -> "Localizer":
+        db = Path(db)
+        for name in ("meta.json", "embeddings.npy", "frames.csv", "encoder.pt"):
+            if not (db / name).is_file():
+                raise LocalizeError(f"{db / name}: missing; build the database with `monolib index STUDY --out {db}`")
+        meta = read_json(db / "meta.json")
+        study = load_study(meta["study_file"], check_files=False)
+        sc = study.scenarios[meta["scenario"]]
+        now = {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)}
+        if now != meta["models"]:
+            raise LocalizeError(f"{db / 'meta.json'}: the database was made by models {meta['models']}, but study "
+                                f"{study.name} now has {now}; rebuild it with `monolib index`")
+        seg = perception.load_trained(study, sc.semantic)
+        dep = perception.load_trained(study, sc.depth)
+        encoder = gcn.GraphEncoder(study.gcn_spec(meta["method"]))
+        encoder.load_state_dict(torch.load(db / "encoder.pt", weights_only=True))
+        encoder.eval()
+        emb = torch.from_numpy(np.load(db / "embeddings.npy"))
+        return Localizer(study, meta, seg, dep, encoder, emb, pd.read_csv(db / "frames.csv"))
+
+    def stages(self, rgb: np.ndarray, timings: dict | None = None) -> torch.Tensor:
+        """The per-image pipeline: segmentation, depth, back-projection + graph, encoder -> (64,) embedding."""
+        from monolib import depth as depth_mod
+        from monolib import segmentation as seg_mod
+
+        t = time.perf_counter()
+        w, h = self.meta["width"], self.meta["height"]
+        frame = to_study_frame(rgb, w, h)
+        semantic = seg_mod.predict(self.segmentation, frame[None])[0]
+        t1 = time.perf_counter()
+        depth = depth_mod.predict(self.depth, frame[None])[0]
+        t2 = time.perf_counter()
+        x, pos = scene_nodes(frame, depth, semantic, Camera.canonical(w, h))
+        threshold = math.inf if self.meta["threshold"] == "inf" else float(self.meta["threshold"])
+        both = self.encoder.spec.edges == "both"
+        g = scenegraphs.at_threshold(scenegraphs.complete_graph(x, pos, "query", "query"), threshold, both)
+        t3 = time.perf_counter()
+        z = gcn.embed(self.encoder, [g])[0]
+        t4 = time.perf_counter()
+        if timings is not None:
+            for k, v in (("segmentation", t1 - t), ("depth", t2 - t1), ("graph", t3 - t2), ("encoder", t4 - t3)):
+                timings.setdefault(k, []).append(v)
+        return z
+
+    def query(self, rgb: np.ndarray, k: int = 5) -> list[dict]:
+        """The k nearest settings (by their closest frame) with distances and the closest frame."""
+        z = self.stages(rgb)
+        d = torch.cdist(z[None], self.embeddings)[0].numpy()
+        df = self.frames.assign(distance=d).sort_values("distance", kind="stable")
+        best = df.groupby("setting", sort=False).head(1).head(k)
+        return [{"rank": i + 1, "setting": r.setting, "distance": float(r.distance), "frame": r.frame}
+                for i, r in enumerate(best.itertuples())]
+
+
+def localize(images: list[str], db: str | Path, k: int = 5) -> list[dict]:
+    loc = Localizer.open(db)
+    rgbs = [read_image(p) for p in images]  # every path checked before any work
+    return [{"image": str(p), "matches": loc.query(rgb, k)} for p, rgb in zip(images, rgbs)]
+
+
+def format_results(results: list[dict]) -> str:
+    lines = []
+    for r in results:
+        lines.append(r["image"])
+        lines += [f"  {m['rank']}. {m['setting']}  distance {m['distance']:.3f}  (closest frame {m['frame']})"
+                  for m in r["matches"]]
+    return "\n".join(lines)

