@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from monolib.device import device
 from monolib.segmentation import colour_jitter, normalise, resize_image, resize_nearest, set_seed, to_batch
 
 log = logging.getLogger(__name__)
@@ -320,7 +321,7 @@ def predict(model: LeReSDepthModel, rgb, batch_size: int = 8) -> np.ndarray:
     h, w = model.input_size
     out = []
     for i in range(0, len(x), batch_size):
-        xb = normalise(x[i : i + batch_size])
+        xb = normalise(x[i : i + batch_size].to(next(model.parameters()).device))
         if xb.shape[-2:] != (h, w):
             xb = F.interpolate(xb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
         raw = model(xb)
@@ -331,7 +332,7 @@ def predict(model: LeReSDepthModel, rgb, batch_size: int = 8) -> np.ndarray:
             d = torch.exp(raw.clamp(max=6.0))
         else:
             d = (raw - raw.amin(dim=(1, 2), keepdim=True) + 0.01) * model.scale
-        out.append(d.float())
+        out.append(d.float().cpu())
     model.train(was_training)
     return torch.cat(out).numpy()
 
@@ -347,7 +348,7 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
     from tqdm.auto import tqdm
 
     gen = set_seed(seed)
-    model = build_model(spec)
+    model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
     t0 = time.perf_counter()
     x, d = load_cache(train_frames, h, w, progress)
@@ -375,7 +376,7 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
             xb = torch.where(flip[:, None, None, None], xb.flip(-1), xb)
             db = torch.where(flip[:, None, None], db.flip(-1), db)
             xb = colour_jitter(xb, gen)
-            loss = depth_loss(model(normalise(xb))[:, 0], db)
+            loss = depth_loss(model(normalise(xb.to(device())))[:, 0], db.to(device()))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -429,4 +430,4 @@ def load_model(spec, path) -> LeReSDepthModel:
     model.scale.fill_(float(blob.get("scale", 1.0)))
     model.input_size = tuple(blob.get("input_size", model.input_size))
     model.eval()
-    return model
+    return model.to(device())

@@ -12,6 +12,14 @@ thresholds ``1, 2, 5, 10, inf``; values in percent). They are the paper's single
 the paper's own Table 1 is not monotone in k for Scenario 4 at 5 m (recall@5 87.5 > recall@10 86.3), which is
 impossible for recall over one fixed ranking; it is transcribed as printed.
 
+Uncertainty
+-----------
+Every number of the tables carries a 95 % interval from a hierarchical bootstrap over test settings, queries within
+settings and seeds, computed from the cells' per-query rankings (`Bootstrap`, `intervals`; ``intervals.csv``), and
+thresholds significantly below their scenario's best are marked by a paired bootstrap of the difference
+(`threshold_tests`; ``threshold_tests.csv``). The same resample indices serve every cell of a study, so differences
+between cells (thresholds, encoder variants in ``encoder_ablation``, depth scales) are paired.
+
 Metric definitions (the design's protocol)
 ------------------------------------------
 A query's candidates are its own setting's positives plus every frame of the other settings.
@@ -657,7 +665,7 @@ def _caption(metric: str, t: pd.DataFrame, tex: bool = False, n_boot: Optional[i
         text += (f" {dag}: significantly below the best threshold of its method and scenario for this k (paired "
                  f"bootstrap of the difference on the same queries, 95% interval excluding 0; each threshold "
                  f"tested on its own, no correction for multiple comparisons).")
-    return text
+    return text.replace("%", r"\%") if tex else text
 
 
 def _cell_text(c: Optional[dict], tex: bool) -> str:
@@ -1220,15 +1228,24 @@ def fig_recall_by_light(table: pd.DataFrame, path: str | Path, method: str = "gc
         label = f"{light} settings (n = {', '.join(str(int(n)) for n in n_set)})"
         ax.bar(xs, ys, width, yerr=np.asarray(err), capsize=3, color=colours[light], label=label,
                error_kw={"elinewidth": 1.0})
+    diff = table[table["light"] == "bright - dim"]
+    for i, key_ in enumerate(groups):
+        d = diff[(diff["method"] == key_[0]) & (diff["scenario"] == key_[1]) & (diff["threshold"] == key_[2])]
+        if len(d) and np.isfinite(d["mean"].iloc[0]):
+            d = d.iloc[0]
+            ax.text(i, 101, f"Δ {_signed(d['mean'])}\n[{_signed(d['ci_lo'])}, {_signed(d['ci_hi'])}]",
+                    ha="center", va="bottom", fontsize=6.5)
     names = [f"{m}\n{sc}, t = {threshold_label(th)}" if not _is_image(m, sc) else f"{m}\n(RGB only)"
              for m, sc, th in groups]
     ax.set_xticks(range(len(groups)), names, fontsize=7)
     ax.set_ylabel(f"recall@{k} (%)")
-    ax.set_ylim(0, 100)
+    ax.set_ylim(0, 116)
+    ax.set_yticks(range(0, 101, 20))
     ax.grid(axis="y", alpha=0.3)
-    ax.legend(fontsize=7, frameon=False)
+    ax.legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.set_title(f"recall@{k}: queries of dim vs bright test settings\n({method} at each scenario's best threshold by "
-                 f"mean recall@{k}; error bars: 95% bootstrap intervals, B = {n_boot})", fontsize=8)
+                 f"mean recall@{k}; error bars: 95% bootstrap intervals, B = {n_boot}; Δ: bright − dim [95% interval])",
+                 fontsize=8)
     return io.save_figure(fig, path)
 
 
@@ -1351,19 +1368,26 @@ def write_report(study_name, rgb_of: Optional[RgbOf] = None,
         study = _load_study(study_name)
     out = paths.figures_dir(study_name)
     results = collect(study_name)
-    labels = {**recorded_labels(study_name), **dict(scenario_labels or {})}
+    labels = {**recorded_labels(study_name), **(labels_of(study) if study is not None else {}),
+              **dict(scenario_labels or {})}
     written: dict[str, Path] = {}
     io.write_text(out / "results.csv", results.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
     written["results"] = out / "results.csv"
 
-    qv = query_table(study_name)
-    boot = Bootstrap.for_queries(qv, n_boot)
-    iv = intervals(qv, boot)
-    tests = threshold_tests(qv, iv, boot)
-    io.write_text(out / "intervals.csv", _csv(iv))
-    written["intervals"] = out / "intervals.csv"
-    io.write_text(out / "threshold_tests.csv", _csv(tests))
-    written["threshold_tests"] = out / "threshold_tests.csv"
+    try:
+        qv = query_table(study_name)
+    except FileNotFoundError as exc:
+        print(f"{study_name}: no per-query rankings, tables without intervals ({exc})")
+        qv = None
+    iv = tests = boot = None
+    if qv is not None:
+        boot = Bootstrap.for_queries(qv, n_boot)
+        iv = intervals(qv, boot)
+        tests = threshold_tests(qv, iv, boot)
+        io.write_text(out / "intervals.csv", _csv(iv))
+        written["intervals"] = out / "intervals.csv"
+        io.write_text(out / "threshold_tests.csv", _csv(tests))
+        written["threshold_tests"] = out / "threshold_tests.csv"
 
     info = scenario_info(study_name, study)
     hidden = set(info.loc[~info["in_tables"].astype(bool), "scenario"])
@@ -1375,6 +1399,9 @@ def write_report(study_name, rgb_of: Optional[RgbOf] = None,
         written["fig5_matches"] = fig_matches(study_name, rgb_of, out / "fig5_matches.png", method,
                                               results=in_tables, scenario_labels=labels)
 
+    if qv is None:
+        log.info("report of %s written to %s", study_name, out)
+        return written
     ablation = encoder_ablation(qv, iv, boot, study, base=method)
     if len(ablation):
         io.write_text(out / "encoder_ablation.md", ablation_markdown(ablation, labels, method, n_boot))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
@@ -68,39 +69,82 @@ def graphs_path(study: Study, scenario: str) -> Path:
     return study.dir / "graphs" / f"{scenario}-{scenario_key(study, scenario)}.pt"
 
 
+_OPEN: dict = {}
+
+
+def _frame_nodes(args) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Worker: the nodes of one frame for each scenario, reading every source once."""
+    study, scenarios, key = args
+    from monolib import perception
+
+    root = str(study.dataset_root)
+    if root not in _OPEN:  # one index per worker process, not one per frame
+        _OPEN[root] = dataset_mod.open_dataset(study)
+    f = _OPEN[root].frame_by_key(key)
+    cache: dict = {}
+
+    def source(kind: str, name: str):
+        if (kind, name) not in cache:
+            read = perception.depth_source(study, name) if kind == "depth" else perception.semantic_source(study, name)
+            cache[(kind, name)] = read(f)
+        return cache[(kind, name)]
+
+    out = []
+    for sc_name in scenarios:
+        sc = study.scenarios[sc_name]
+        depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
+        out.append(scene_nodes(f.rgb, depth, source("semantic", sc.semantic), f.camera))
+    return out
+
+
 def build(study: Study, scenario: str, progress: bool = True) -> Path:
     """Build (or find cached) the graphs of every selected frame for one scenario."""
-    path = graphs_path(study, scenario)
-    if path.exists():
-        log.info("graphs: %s cached (%s)", scenario, path.name)
-        return path
+    return build_all(study, [scenario], progress)[scenario]
+
+
+def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict[str, Path]:
+    """Build the graphs of several scenarios in one pass over the frames (each file read once), in
+    `dataset.workers` processes; scenarios already cached are skipped."""
+    out = {sc: graphs_path(study, sc) for sc in scenarios}
+    todo = [sc for sc in scenarios if not out[sc].exists()]
+    for sc in scenarios:
+        if sc not in todo:
+            log.info("graphs: %s cached (%s)", sc, out[sc].name)
+    if not todo:
+        return out
     t0 = time.perf_counter()
     if study.graphs_root:
         from monolib import published
 
         graphs = published.select(study)
+        built = {sc: graphs for sc in todo}
     else:
-        from monolib import perception
-
-        sc = study.scenarios[scenario]
         ds = dataset_mod.open_dataset(study)
         sel = dataset_mod.select_frames(study, ds, study.gcn.val_settings)
-        depth_of = perception.depth_source(study, sc.depth)
-        semantic_of = perception.semantic_source(study, sc.semantic)
-        graphs = {}
-        for split in SPLITS:
-            frames = getattr(sel, split)
-            out = []
-            for f in tqdm(frames, desc=f"graphs {scenario} {split}", disable=not progress, leave=False):
-                depth = depth_of(f) * np.float32(sc.depth_scale)
-                x, pos = scene_nodes(f.rgb, depth, semantic_of(f), f.camera)
-                out.append(complete_graph(x, pos, f.setting, f.key))
-            graphs[split] = out
-    with atomic_path(path) as tmp:
-        torch.save({"scenario": scenario, "graphs": graphs, "seconds": time.perf_counter() - t0}, tmp)
-    n = sum(len(v) for v in graphs.values())
-    log.info("graphs: %s built, %d graphs in %.1f s", scenario, n, time.perf_counter() - t0)
-    return path
+        frames = [(split, f) for split in SPLITS for f in getattr(sel, split)]
+        jobs = [(study, todo, f.key) for _, f in frames]
+        workers = max(1, min(study.dataset.workers, os.cpu_count() or 1))
+        if workers > 1:
+            import multiprocessing as mp
+
+            with mp.get_context("fork").Pool(workers) as pool:
+                nodes = list(tqdm(pool.imap(_frame_nodes, jobs, chunksize=8), total=len(jobs),
+                                  desc=f"graphs {'+'.join(todo)}", disable=not progress, leave=False))
+        else:
+            nodes = [_frame_nodes(j) for j in tqdm(jobs, desc=f"graphs {'+'.join(todo)}", disable=not progress, leave=False)]
+        built = {}
+        for i, sc in enumerate(todo):
+            built[sc] = {split: [] for split in SPLITS}
+            for (split, f), per_scenario in zip(frames, nodes):
+                x, pos = per_scenario[i]
+                built[sc][split].append(complete_graph(x, pos, f.setting, f.key))
+    seconds = time.perf_counter() - t0
+    for sc in todo:
+        with atomic_path(out[sc]) as tmp:
+            torch.save({"scenario": sc, "graphs": built[sc], "seconds": seconds}, tmp)
+        n = sum(len(v) for v in built[sc].values())
+        log.info("graphs: %s built, %d graphs (%d scenarios in %.1f s)", sc, n, len(todo), seconds)
+    return out
 
 
 def load(study: Study, scenario: str, progress: bool = False) -> dict[str, list[Data]]:

@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from monolib.device import device
 from monolib.labels import NUM_CLASSES
 
 log = logging.getLogger(__name__)
@@ -210,13 +211,13 @@ def predict(model: nn.Module, rgb, batch_size: int = 8) -> np.ndarray:
     h, w = model.input_size
     out = []
     for i in range(0, len(x), batch_size):
-        xb = normalise(x[i : i + batch_size])
+        xb = normalise(x[i : i + batch_size].to(next(model.parameters()).device))
         if xb.shape[-2:] != (h, w):
             xb = F.interpolate(xb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
         cls = model(xb)["out"].argmax(1, keepdim=True).float()
         if cls.shape[-2:] != x.shape[-2:]:
             cls = F.interpolate(cls, size=tuple(x.shape[-2:]), mode="nearest")
-        out.append(cls[:, 0].to(torch.int16) + 1)
+        out.append(cls[:, 0].to(torch.int16).cpu() + 1)
     model.train(was_training)
     return torch.cat(out).numpy()
 
@@ -238,7 +239,7 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
     from tqdm.auto import tqdm
 
     gen = set_seed(seed)
-    model = build_model(spec)
+    model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
     t0 = time.perf_counter()
     x, y = load_cache(train_frames, h, w, progress)
@@ -263,8 +264,8 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
             if len(idx) < 2:  # BatchNorm needs two samples
                 continue
             xb, yb = augment(x[idx], y[idx], gen)
-            logits = model(normalise(xb))["out"]
-            loss = loss_fn(logits, yb)
+            logits = model(normalise(xb.to(device())))["out"]
+            loss = loss_fn(logits, yb.to(device()))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -307,7 +308,7 @@ def load_model(spec, path) -> nn.Module:
     model = build_model(spec_nopre)
     model.load_state_dict(state, strict=True)
     model.eval()
-    return model
+    return model.to(device())
 
 
 def save_model(model: nn.Module, path) -> None:

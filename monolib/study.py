@@ -175,8 +175,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     t = time.perf_counter()
     if study.graph_methods():
         print(f"[3/5] graphs: {len(study.scenarios)} scenarios", flush=True)
-        for sc in study.scenarios:
-            scenegraphs.build(study, sc, progress=progress)
+        scenegraphs.build_all(study, list(study.scenarios), progress=progress)
     times["graphs_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

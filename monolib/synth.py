@@ -35,7 +35,7 @@ from monolib.labels import ID
 VOLUME0 = 900
 FORMAT_VERSION = 3  # bump when the generator changes: finished settings with another version are re-rendered
 FOV_X = math.pi / 3
-H5_COMPRESSION = 9
+H5_COMPRESSION = 4  # gzip level (Hypersim uses 9; 4 halves the write time at ~1% larger files)
 N_PANS = 4  # each scene pans through N_PANS + 1 look-at targets on room content
 
 # ai_037_002's tilt-shift camera (metadata_camera_parameters.csv of ml-hypersim)
@@ -468,8 +468,7 @@ def b_dresser(dim, mats):
 
 def b_shelves(dim, mats):
     w, d, h = dim
-    objs = [Obj(ID["shelves"], [(_bx(0, 0, z, w, d, 0.025) if True else None, "wood")
-                                for z in np.linspace(0, h, 3)])]
+    objs = [Obj(ID["shelves"], [(_bx(0, 0, z, w, d, 0.025), "wood") for z in np.linspace(0, h, 3)])]
     objs.append(Obj(ID["box"], [(_bx(-w / 4, 0, h / 2 + 0.025, 0.3, d * 0.8, min(0.25, h / 2 - 0.05)), "cardboard")]))
     objs.append(Obj(ID["otherprop"], [(_cyl(w / 4, 0, 0.025, 0.05, 0.18), "prop")]))
     objs.append(Obj(ID["books"], [(_bx(w / 4, 0, h + 0.025, 0.3, d * 0.8, 0.22), "books")]))
@@ -530,7 +529,7 @@ def w_towel(dim, mats):
             Obj(ID["towel"], [(_bx(0, 0.05, 0, w, 0.03, h), "towel")])]
 
 
-# kind -> (builder, placement, dims (lo, hi) w/d/h, mount height for wall things)
+# kind -> (builder, placement, dims (lo, hi) of width / depth / height in metres)
 CATALOGUE = {
     "table": (b_table, "centre", ((1.0, 0.7, 0.72), (1.8, 1.0, 0.78))),
     "dining_table": (b_table, "centre", ((1.2, 0.8, 0.72), (2.0, 1.0, 0.78))),
@@ -559,7 +558,7 @@ CATALOGUE = {
     "bathtub": (b_bathtub, "wall", ((1.5, 0.7, 0.55), (1.8, 0.8, 0.6))),
     "vanity": (b_vanity, "wall", ((0.6, 0.45, 0.85), (1.2, 0.55, 0.9))),
     "otherfurniture": (b_boxlike("otherfurniture", "wood2"), "wall", ((0.5, 0.4, 0.5), (1.0, 0.5, 0.9))),
-    # wall-mounted: placement "mount", dims w, depth, h; mount height in CATALOGUE_MOUNT
+    # wall-mounted: placement "mount", dims w, depth, h; mount heights in MOUNT_Z
     "picture": (w_picture, "mount", ((0.4, 0.03, 0.3), (1.2, 0.03, 0.8))),
     "whiteboard": (w_whiteboard, "mount", ((1.6, 0.03, 0.9), (3.0, 0.03, 1.2))),
     "mirror": (w_simple("mirror", "mirror"), "mount", ((0.5, 0.02, 0.6), (0.9, 0.02, 1.0))),
@@ -799,7 +798,6 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
                 # not behind tall furniture
                 c = o + t * s + nrm * 0.05
                 fp = _footprint(c[0], c[1], w * math.pi / 2, dims[0], 0.1)
-                blocked = [r for r, itm in zip(rects, items) if False]
                 tall = [(_footprint(q.x, q.y, q.yaw, q.w, q.d), q) for q in items if q.h > z0 - 0.05]
                 if _overlaps(fp, [r for r, _q in tall], pad=0.0) or _overlaps(fp, high_rects, pad=0.0):
                     continue
@@ -978,8 +976,6 @@ def build_mesh(fam: Family, lay: Layout, seed: int, setting_index: int) -> Scene
                     leaf = _box((a + 0.02, 0.0, 0.0), (a + 0.06, b - a - 0.04, z1 - 0.02))
                 knob = _box((b - 0.12, -0.02, 1.0), (b - 0.08, 0.04, 1.04)) if not open_ else _box((a + 0.06, b - a - 0.2, 1.0), (a + 0.1, b - a - 0.15, 1.04))
                 add_obj(ID["door"], [(leaf, "door"), (knob, "metal")] + frame, T, "door")
-                if not open_:
-                    pass
             else:
                 parts = [(_box((a - 0.05, -0.13, z0 - 0.05), (a, 0.02, z1 + 0.05)), "frame"),
                          (_box((b, -0.13, z0 - 0.05), (b + 0.05, 0.02, z1 + 0.05)), "frame"),
@@ -1392,8 +1388,6 @@ def render_setting(s: dict, study_key: dict, width: int, height: int, seed: int,
 
 def _worker(args):
     s, key, width, height, seed, out_dir = args
-    import threading  # noqa: F401 -- keep workers single-threaded-ish (numpy via env below)
-
     final = Path(out_dir) / s["name"]
     tmp = Path(out_dir) / f".tmp_{s['name']}_{os.getpid()}"
     if tmp.exists():
@@ -1431,6 +1425,13 @@ def render_dataset(study, out_dir, progress: bool = True) -> Path:
     settings = plan(study)
     for p in out_dir.glob(".tmp_ai_*"):  # leftovers of a killed run
         shutil.rmtree(p, ignore_errors=True)
+    wanted = {s["name"] for s in settings}
+    stale = [p for p in out_dir.glob("ai_9[0-9][0-9]_[0-9][0-9][0-9]") if p.is_dir() and p.name not in wanted
+             and (p / "_detail" / "monolib_synth_setting.json").is_file()]
+    for p in stale:  # synthetic settings of an earlier, larger study: not part of this dataset
+        shutil.rmtree(p)
+    if stale:
+        print(f"monolib.synth: removed {len(stale)} synthetic settings that are not in this study", flush=True)
     infos: dict[str, dict] = {}
     todo = []
     for s in settings:

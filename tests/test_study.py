@@ -168,3 +168,18 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
     (db / "meta.json").write_text(json.dumps(meta))
     out = subprocess.run(MONOLIB + ["localize", str(png), "--db", str(db)], env=ENV, capture_output=True, text=True)
     assert out.returncode == 2 and "made by models" in out.stderr
+
+
+def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_path, capsys):
+    from monolib import perception, scenegraphs
+
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data["gcn"].update(epochs=data["gcn"]["epochs"] + 7, lr=0.01)
+    p = tmp_path / "smoke.yaml"
+    p.write_text(yaml.safe_dump(data))
+    s = load_study(p)
+    table = perception.run(s, progress=False)
+    assert set(table.attrs["status"].values()) == {"cached"}
+    assert "nothing to do" in capsys.readouterr().out
+    # the scene graphs do not depend on the GCN either
+    assert all(scenegraphs.graphs_path(s, sc) == scenegraphs.graphs_path(load_study("smoke"), sc) for sc in s.scenarios)
