@@ -9,7 +9,7 @@ STUDY ?= quick
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study smoke test bench clean-runs
+.PHONY: install study ablations smoke test bench clean-runs
 
 install: $(STAMP)
 
@@ -23,6 +23,10 @@ $(STAMP): pyproject.toml
 study: install
 	$(VENV)/bin/monolib study $(STUDY)
 
+# beyond the paper on the quick study's data (run `make study` first): encoder ablation, ours, depth scale
+ablations: install
+	$(VENV)/bin/monolib study ablations
+
 smoke: install
 	$(VENV)/bin/monolib study smoke
 
@@ -31,7 +35,7 @@ test: install
 	$(PY) -m pytest tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with tests/nbval_sanitize.cfg -p no:cacheprovider
 
 bench: install
-	$(VENV)/bin/monolib bench
+	$(VENV)/bin/monolib bench --out figures/bench.json
 
 clean-runs:
 	rm -rf runs/

@@ -47,8 +47,8 @@ def color_hist(rgb: np.ndarray) -> np.ndarray:
 ORB_FEATURES = 500
 ORB_MIN_WIDTH = 256        # smaller images are upscaled first: ORB's 31-pixel patches leave little of a 128-px frame
 BOW_WORDS = 192
-BOW_SAMPLE = 20_000        # descriptors used to learn the vocabulary (seeded subsample)
-KMEANS_ITERS = 20
+BOW_SAMPLE = 10_000        # descriptors used to learn the vocabulary (seeded subsample)
+KMEANS_ITERS = 10
 
 
 def orb_descriptors(rgb: np.ndarray, n_features: int = ORB_FEATURES) -> np.ndarray:

@@ -87,19 +87,38 @@ def stage_ms(study_name: str = "quick", frames: int = 20) -> dict:
     return out
 
 
-def run(width: int = 256, height: int = 192, study: str = "quick") -> None:
-    print(f"machine: {platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads, "
-          f"torch {torch.__version__}")
+def run(width: int = 256, height: int = 192, study: str = "quick", out: str | None = None) -> dict:
+    """Print every benchmark; with `out`, also write them as JSON (the README quotes `figures/bench.json`)."""
+    import os
+
+    print(f"machine: {platform.machine()} {platform.processor()}, {os.cpu_count()} cpus, "
+          f"{torch.get_num_threads()} torch threads, torch {torch.__version__}")
     from monolib import synth
 
-    synth.benchmark(width, height, frames=10)
+    record = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "cpus": os.cpu_count(),
+              "torch_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d")}
+    r = synth.benchmark(width, height, frames=10)
+    record["render_frames_per_s"] = round(r["fps"], 2)
     st = stage_ms(study)
+    record["stage_ms_per_frame"] = {k: round(v, 2) for k, v in st.items()}
     print(f"per-frame stages at the {study} study's resolution (ms): "
           + ", ".join(f"{k} {v:.1f}" for k, v in st.items() if k != "graph_share_%")
           + f"; graph = {st['graph_share_%']:.1f}% of the frame")
+    record["graph_ms_per_frame"] = {}
     for w, h in ((256, 192), (1024, 768)):
-        print(f"graph construction {w}x{h}: {graph_ms(w, h):.1f} ms per frame")
+        ms = graph_ms(w, h)
+        record["graph_ms_per_frame"][f"{w}x{h}"] = round(ms, 2)
+        print(f"graph construction {w}x{h}: {ms:.1f} ms per frame")
+    record["knn_ms_per_query"] = {}
     for n in (600, 100_000, 1_000_000):
         r = knn_ms(n)
+        record["knn_ms_per_query"][f"{n}"] = {"torch": round(r["torch_ms_per_query"], 4),
+                                              "faiss_flat": round(r["faiss_ms_per_query"], 4)}
         print(f"kNN over {n:>9,} vectors (64-d, k=10): torch {r['torch_ms_per_query']:.3f} ms/query, "
               f"faiss flat {r['faiss_ms_per_query']:.3f} ms/query")
+    if out:
+        from monolib.io import write_json
+
+        write_json(out, record)
+        print(f"written: {out}")
+    return record

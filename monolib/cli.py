@@ -35,6 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--study", default="quick", help="the study whose networks and resolution are timed")
+    p.add_argument("--out", default=None, help="also write the figures as JSON (e.g. figures/bench.json)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     for noisy in ("papermill", "traitlets", "nbclient"):
@@ -70,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "bench":
             from monolib import bench
 
-            bench.run(args.width, args.height, args.study)
+            bench.run(args.width, args.height, args.study, args.out)
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -140,6 +140,8 @@ class Study:
     jobs: int = 2                            # parallel papermill workers for the grid
     cell_timeout: int = 1800                 # seconds per notebook cell
     graphs_root: Optional[str] = None        # published graph files (train/ and test/) instead of a dataset
+    extends: Optional[str] = None            # a base study: its file is the default of every key, and its dataset,
+                                             # perception models, predictions and graphs are reused (runs/<base>/)
     dataset: DatasetSpec = field(default_factory=DatasetSpec)
     perception: PerceptionSpec = field(default_factory=PerceptionSpec)
     scenarios: dict[str, Scenario] = field(default_factory=lambda: {"s1": Scenario(label="GT depth, GT semantics")})
@@ -154,13 +156,19 @@ class Study:
     # ---- derived -----------------------------------------------------------------------------------------
     @property
     def dir(self) -> Path:
+        """`runs/<study>/`: this study's cells and executed notebooks."""
         return paths.study_dir(self.name)
+
+    @property
+    def data_dir(self) -> Path:
+        """`runs/<study or its base>/`: dataset, perception models, predictions and graphs."""
+        return paths.study_dir(self.extends or self.name)
 
     @property
     def dataset_root(self) -> Path:
         if self.dataset.root:
             return resolve_path(self.dataset.root, self.path)
-        return self.dir / "dataset"
+        return self.data_dir / "dataset"
 
     @property
     def metadata_dir(self) -> Optional[Path]:
@@ -381,6 +389,14 @@ def find_study(study: str | Path) -> Path:
     return p.resolve()
 
 
+def _merge(base: dict, over: dict) -> dict:
+    """`over` on top of `base`: mappings merged key by key, everything else replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+    return out
+
+
 def load_study(study: str | Path, check_files: bool = True) -> Study:
     """Load and validate a study; `check_files=False` skips checks that the data folders exist (for reading a
     study meant for another machine)."""
@@ -391,6 +407,12 @@ def load_study(study: str | Path, check_files: bool = True) -> Study:
         raise StudyError(f"{path}: not valid YAML ({exc})") from exc
     if not isinstance(data, dict):
         raise StudyError(f"{path}: expected a mapping of study keys at the top level")
+    if data.get("extends"):
+        base_path = find_study(str(data["extends"]))
+        base = yaml.safe_load(base_path.read_text()) or {}
+        if base.get("extends"):
+            raise StudyError(f"{path}: extends: {data['extends']} extends another study; one level only")
+        data = _merge(base, data)
     try:
         s = _build(Study, data, "")
         s.path = str(path)

@@ -32,8 +32,13 @@ def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed
 
 
 DEFAULT_STUDY = "quick"
+# the studies whose results are committed, and where (every other study writes into runs/<study>/figures/)
+COMMITTED_FIGURES = {"quick": "", "ablations": "ablations"}
 
 
 def figures_dir(study_name: str) -> Path:
-    """Where a study's tables and figures go: `figures/` for the default (quick) study, else `runs/<study>/figures/`."""
-    return FIGURES if study_name == DEFAULT_STUDY else study_dir(study_name) / "figures"
+    """Where a study's tables and figures go: `figures/` for the default (quick) study, `figures/ablations/` for
+    the ablations study, else `runs/<study>/figures/`."""
+    if study_name in COMMITTED_FIGURES:
+        return FIGURES / COMMITTED_FIGURES[study_name] if COMMITTED_FIGURES[study_name] else FIGURES
+    return study_dir(study_name) / "figures"

@@ -57,11 +57,11 @@ def model_tag(study: Study, name: str) -> str:
 
 
 def model_dir(study: Study, name: str) -> Path:
-    return study.dir / "models" / model_tag(study, name)
+    return study.data_dir / "models" / model_tag(study, name)
 
 
 def predictions_dir(study: Study, name: str) -> Path:
-    return study.dir / "predictions" / model_tag(study, name)
+    return study.data_dir / "predictions" / model_tag(study, name)
 
 
 def prediction_path(study: Study, name: str, frame) -> Path:
@@ -292,7 +292,7 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
             print(f"perception: {tag} {how}, predicted {n_pred} frames, test {shown}")
     table = metrics_table(study)
     csv = table.to_csv(index=False, float_format="%.6g")
-    _write_if_changed(study.dir / "perception" / "metrics.csv", csv)
+    _write_if_changed(study.data_dir / "perception" / "metrics.csv", csv)
     _write_if_changed(paths.figures_dir(study.name) / "perception.csv", csv)
     table.attrs["status"] = status
     return table

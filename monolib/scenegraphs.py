@@ -66,7 +66,7 @@ def scenario_key(study: Study, scenario: str) -> str:
 
 
 def graphs_path(study: Study, scenario: str) -> Path:
-    return study.dir / "graphs" / f"{scenario}-{scenario_key(study, scenario)}.pt"
+    return study.data_dir / "graphs" / f"{scenario}-{scenario_key(study, scenario)}.pt"
 
 
 _OPEN: dict = {}

@@ -127,6 +127,12 @@ def build_model(spec) -> nn.Module:
         model.classifier[-1] = nn.Conv2d(last.in_channels, NUM_CLASSES, kernel_size=1)
     else:
         model = builder(weights=None, weights_backbone=None, num_classes=NUM_CLASSES, aux_loss=False)
+        # torchvision's MobileNetV3 uses BatchNorm momentum 0.01 (tuned for ImageNet-length training): from scratch
+        # on a few hundred steps its running statistics would stay at their initial values and evaluation mode
+        # would predict one class. PyTorch's default momentum lets them follow the data.
+        for m in model.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                m.momentum = 0.1
     model.input_size = (spec.train_height, spec.train_width)
     return model
 

@@ -155,9 +155,10 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     if not study.graphs_root:
         print(f"[1/5] dataset: {study.dataset_root}", flush=True)
         dataset.ensure_dataset(study, progress=progress)
-        from monolib import viz
+        if not study.extends:
+            from monolib import viz
 
-        viz.save_dataset_mosaic(study, paths.figures_dir(study.name) / "frames.png")
+            viz.save_dataset_mosaic(study, paths.figures_dir(study.name) / "frames.png")
     else:
         print(f"[1/5] dataset: published graphs in {study.graphs_root}", flush=True)
     times["dataset_s"] = time.perf_counter() - t
