@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from monolib import dataset as dataset_mod
 from monolib.graph import NODE_FEATURES, scene_nodes
-from monolib.io import atomic_path
+from monolib.io import DataFileError, atomic_path
 from monolib.params import Study, key_of
 
 log = logging.getLogger(__name__)
@@ -92,8 +92,11 @@ def _frame_nodes(args) -> list[tuple[np.ndarray, np.ndarray]]:
     out = []
     for sc_name in scenarios:
         sc = study.scenarios[sc_name]
-        depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
-        out.append(scene_nodes(f.rgb, depth, source("semantic", sc.semantic), f.camera))
+        try:
+            depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
+            out.append(scene_nodes(f.rgb, depth, source("semantic", sc.semantic), f.camera))
+        except (DataFileError, FileNotFoundError) as exc:  # a missing Hypersim file: an empty graph, reported
+            out.append((np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32), str(exc)))
     return out
 
 
@@ -135,9 +138,14 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
         built = {}
         for i, sc in enumerate(todo):
             built[sc] = {split: [] for split in SPLITS}
+            missing = []
             for (split, f), per_scenario in zip(frames, nodes):
-                x, pos = per_scenario[i]
+                x, pos, *error = per_scenario[i]
+                missing += error
                 built[sc][split].append(complete_graph(x, pos, f.setting, f.key))
+            if missing:
+                log.warning("graphs: %s: %d frames with a missing or unreadable file became empty graphs "
+                            "(first: %s)", sc, len(missing), missing[0])
     seconds = time.perf_counter() - t0
     for sc in todo:
         with atomic_path(out[sc]) as tmp:

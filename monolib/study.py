@@ -169,6 +169,11 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
 
         print("[2/5] perception", flush=True)
         perception.run(study, progress=progress)
+        if not study.extends:  # the paper's Figures 3 and 4 and the training curves, into figures/
+            import matplotlib.pyplot as plt
+
+            for draw in (perception.plot_training, perception.plot_depth_examples, perception.plot_semantic_examples):
+                plt.close(draw(study))
     else:
         print("[2/5] perception: not needed (ground-truth scenarios only)", flush=True)
     times["perception_s"] = time.perf_counter() - t
@@ -191,7 +196,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     out = paths.figures_dir(study.name)
     if grid_run["ran"] or not (out / "timings.json").is_file():  # a cached re-run keeps the record of the real run
         write_run_record(study, times, out / "timings.json")
-    if study.name == paths.DEFAULT_STUDY:
+    if study.name in paths.COMMITTED_FIGURES:
         from monolib import readme
 
         if readme.update():
