@@ -8,7 +8,6 @@
 """
 from __future__ import annotations
 
-import copy
 import logging
 import time
 from dataclasses import dataclass
@@ -203,7 +202,7 @@ def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tens
               threads: int = 2, augment: bool = True) -> CNNResult:
     """The GCN's training loop (`monolib.gcn.train`) with an image encoder: Adam, triplet margin loss, fresh
     per-setting triplets each epoch, early stopping on validation leave-one-out recall@1, best state kept."""
-    from monolib.gcn import draw_triplets, leave_one_out_recall
+    from monolib.gcn import EarlyStopping, draw_triplets
 
     torch.set_num_threads(threads)
     torch.manual_seed(seed)
@@ -213,8 +212,7 @@ def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tens
     opt = torch.optim.Adam(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
     loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
     settings, val_settings = np.asarray(train_settings), np.asarray(val_settings)
-    best = (-1.0, float("inf"))
-    best_state, best_epoch, bad_epochs, history = copy.deepcopy(model.state_dict()), 0, 0, []
+    stopper = EarlyStopping(spec.patience, seed, model)
     t0 = time.perf_counter()
     for epoch in range(1, spec.epochs + 1):
         model.train()
@@ -234,25 +232,11 @@ def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tens
             opt.step()
             losses.append(loss.item() * b)
         train_loss = sum(losses) / len(a)
-        if len(val_images) and len(set(val_settings)) > 1:
-            val_emb = cnn_embed(model, val_images)
-            val_recall = leave_one_out_recall(val_emb, val_settings)
-            va, vp, vn = draw_triplets(val_settings, np.random.default_rng(seed + 1))
-            val_loss = float(loss_fn(val_emb[va], val_emb[vp], val_emb[vn]))
-        else:
-            val_recall, val_loss = float("nan"), train_loss
-        history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "val_recall@1": val_recall})
-        log.debug("epoch %d loss %.4f val loss %.4f val recall@1 %.3f", epoch, train_loss, val_loss, val_recall)
-        score = (0.0 if np.isnan(val_recall) else val_recall, -val_loss)
-        if score > (best[0], -best[1]):
-            best, best_epoch, bad_epochs = (score[0], val_loss), epoch, 0
-            best_state = copy.deepcopy(model.state_dict())
-        else:
-            bad_epochs += 1
-            if bad_epochs >= spec.patience:
-                break
-    model.load_state_dict(best_state)
-    return CNNResult(model, history, best_epoch, time.perf_counter() - t0)
+        val_emb = cnn_embed(model, val_images) if len(val_images) else None
+        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn):
+            break
+    model.load_state_dict(stopper.best_state)
+    return CNNResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)
 
 
 def image_triplet_embed(study, selection, seed: int, spec=None):

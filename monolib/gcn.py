@@ -159,6 +159,39 @@ def leave_one_out_recall(emb: torch.Tensor, settings: np.ndarray) -> float:
     return float((np.asarray(settings)[nn_idx] == np.asarray(settings)).mean())
 
 
+class EarlyStopping:
+    """Validation after each epoch (leave-one-out recall@1 on the validation settings, then triplet loss on fixed
+    validation triplets), the history, the best state, and the stop after `patience` epochs without progress.
+    Shared by every encoder trained with the triplet loss (graphs here, images in `monolib.baselines`)."""
+
+    def __init__(self, patience: int, seed: int, model: nn.Module):
+        self.patience, self.seed = patience, seed
+        self.best = (-1.0, float("inf"))
+        self.best_state, self.best_epoch, self.bad_epochs = copy.deepcopy(model.state_dict()), 0, 0
+        self.history: list[dict] = []
+
+    def step(self, model: nn.Module, epoch: int, train_loss: float, val_emb, val_settings, loss_fn,
+             progress: bool = False) -> bool:
+        """Record the epoch; True when training should stop."""
+        val_settings = np.asarray(val_settings)
+        if val_emb is not None and len(set(val_settings)) > 1:
+            val_recall = leave_one_out_recall(val_emb, val_settings)
+            va, vp, vn = draw_triplets(val_settings, np.random.default_rng(self.seed + 1))
+            val_loss = float(loss_fn(val_emb[va], val_emb[vp], val_emb[vn]))
+        else:
+            val_recall, val_loss = float("nan"), train_loss
+        self.history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "val_recall@1": val_recall})
+        if progress:
+            log.info("epoch %d loss %.4f val loss %.4f val recall@1 %.3f", epoch, train_loss, val_loss, val_recall)
+        score = (0.0 if np.isnan(val_recall) else val_recall, -val_loss)
+        if score > (self.best[0], -self.best[1]):
+            self.best, self.best_epoch, self.bad_epochs = (score[0], val_loss), epoch, 0
+            self.best_state = copy.deepcopy(model.state_dict())
+            return False
+        self.bad_epochs += 1
+        return self.bad_epochs >= self.patience
+
+
 @dataclass
 class TrainResult:
     model: GraphEncoder
@@ -179,8 +212,7 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
     loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
     settings = np.array([g.setting for g in train_graphs])
     val_settings = np.array([g.setting for g in val_graphs])
-    best = (-1.0, float("inf"))
-    best_state, best_epoch, bad_epochs, history = copy.deepcopy(model.state_dict()), 0, 0, []
+    stopper = EarlyStopping(spec.patience, seed, model)
     t0 = time.perf_counter()
     for epoch in range(1, spec.epochs + 1):
         model.train()
@@ -209,23 +241,8 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
                 losses.append(loss.item() * b)
                 seen += b
         train_loss = sum(losses) / max(seen, 1)
-        if len(val_graphs) and len(set(val_settings)) > 1:
-            val_emb = embed(model, val_graphs)
-            val_recall = leave_one_out_recall(val_emb, val_settings)
-            va, vp, vn = draw_triplets(val_settings, np.random.default_rng(seed + 1))
-            val_loss = float(loss_fn(val_emb[va], val_emb[vp], val_emb[vn]))
-        else:
-            val_recall, val_loss = float("nan"), train_loss
-        history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "val_recall@1": val_recall})
-        if progress:
-            log.info("epoch %d loss %.4f val loss %.4f val recall@1 %.3f", epoch, train_loss, val_loss, val_recall)
-        score = (0.0 if np.isnan(val_recall) else val_recall, -val_loss)
-        if score > (best[0], -best[1]):
-            best, best_epoch, bad_epochs = (score[0], val_loss), epoch, 0
-            best_state = copy.deepcopy(model.state_dict())
-        else:
-            bad_epochs += 1
-            if bad_epochs >= spec.patience:
-                break
-    model.load_state_dict(best_state)
-    return TrainResult(model, history, best_epoch, time.perf_counter() - t0)
+        val_emb = embed(model, val_graphs) if len(val_graphs) else None
+        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn, progress):
+            break
+    model.load_state_dict(stopper.best_state)
+    return TrainResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)

@@ -9,9 +9,7 @@ Hypersim canonical camera (60 degree horizontal field of view).
 """
 from __future__ import annotations
 
-import json
 import math
-import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path

@@ -360,7 +360,7 @@ def _check(study: Study, check_files: bool = True) -> None:
     specs = {"gcn": study.gcn}
     for vname, v in study.variants.items():
         if vname in METHODS:
-            bad(f"variants.{vname}", f"a variant cannot reuse the name of a built-in method")
+            bad(f"variants.{vname}", "a variant cannot reuse the name of a built-in method")
         try:
             specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn}, f"variants.{vname}.gcn")
         except StudyError as exc:

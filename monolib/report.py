@@ -686,7 +686,7 @@ def _cell_text(c: Optional[dict], tex: bool) -> str:
 
 def _md_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None) -> str:
     t, ks, rows = _layout(results, metric, scenario_labels, iv, tests)
-    name, title = TABLES[metric][0], TABLES[metric][1]
+    title = TABLES[metric][1]
     has_paper = t["paper"].notna().any()
     head = ["method", "data", "threshold (m)"] + [f"k={k}" for k in ks]
     if has_paper:

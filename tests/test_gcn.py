@@ -4,7 +4,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from torch_geometric.data import Batch
 
 from monolib.gcn import GraphEncoder, draw_triplets, embed, train
 from monolib.params import GCNSpec

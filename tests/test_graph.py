@@ -3,7 +3,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from monolib.graph import build_scene_graph, grouped_median, scene_nodes
 from monolib.hypersim import Camera

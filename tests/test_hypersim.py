@@ -1,6 +1,4 @@
 """The reader on Hypersim-layout files written here, against values derived by hand."""
-import csv
-import warnings
 from pathlib import Path
 
 import numpy as np
