@@ -62,7 +62,7 @@ def test_every_number_is_recomputed_from_its_rankings(smoke_study):
         rows = results[(results.method == cell["method"]) & (results.scenario == cell["scenario"])
                        & (results.threshold == thr) & (results.seed == cell["seed"])]
         for _, r in rows.iterrows():
-            assert r.value == pytest.approx(cell["metrics"][f"{r.metric}@{int(r.k)}"])
+            assert r.value == pytest.approx(cell["metrics"][f"{r.metric}@{int(r.k)}"], abs=1e-3)  # csv: 4 decimals
 
 
 def test_rerun_recomputes_nothing(smoke_study):
