@@ -32,7 +32,7 @@ smoke: install
 
 # tests/ first (they run the smoke study end to end), then every notebook with its smoke defaults (nbval, lax)
 test: install
-	$(PY) -m pytest tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with tests/nbval_sanitize.cfg -p no:cacheprovider
+	$(PY) -m pytest tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
 
 bench: install
 	$(VENV)/bin/monolib bench --out figures/bench.json

@@ -57,7 +57,9 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
     rng = np.random.default_rng(1)
     write_folder(tmp_path / "graphs" / "train", [f"00{i}001" for i in range(1, 6)], 6, rng)
     write_folder(tmp_path / "graphs" / "test", [f"01{i}001" for i in range(1, 4)], 5, rng)
-    study = yaml.safe_load(open(load_study("published").path))
+    from monolib import paths
+
+    study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
     study.update(name="published_test", graphs_root=str(tmp_path / "graphs"))
     study["protocol"].update(settings=3, frames=5, queries=3, positives=2)
     study["gcn"].update(epochs=2, val_settings=1)

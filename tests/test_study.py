@@ -103,10 +103,10 @@ def test_killed_study_resumes_without_recomputing(smoke_study, tmp_path):
     assert all(after[f] == t for f, t in done.items())
 
 
-def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path):
+def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path, monkeypatch):
     """papermill as a user calls it, from another directory, with a threshold and seed no study lists."""
     out = tmp_path / "cell"
-    os.chdir(tmp_path)
+    monkeypatch.chdir(tmp_path)
     papermill.execute_notebook(str(paths.NOTEBOOKS / "ablation_cell.ipynb"), str(tmp_path / "out.ipynb"),
                                parameters={"study": "smoke", "scenario": "s2", "threshold": 3.7, "seed": 11,
                                            "out_dir": str(out)}, kernel_name="python3", progress_bar=False)
