@@ -151,13 +151,14 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     check_notebook_parameters(REPORT_NOTEBOOK, {"study"})
     times = {}
     t = time.perf_counter()
+    ds = None
     if not study.graphs_root:
         print(f"[1/5] dataset: {study.dataset_root}", flush=True)
-        dataset.ensure_dataset(study, progress=progress)
+        ds = dataset.ensure_dataset(study, progress=progress)
         if not study.extends:
             from monolib import viz
 
-            viz.save_dataset_mosaic(study, paths.figures_dir(study.name) / "frames.png")
+            viz.save_dataset_mosaic(study, paths.figures_dir(study.name) / "frames.png", ds)
     else:
         print(f"[1/5] dataset: published graphs in {study.graphs_root}", flush=True)
     times["dataset_s"] = time.perf_counter() - t
@@ -167,7 +168,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
         from monolib import perception
 
         print("[2/5] perception", flush=True)
-        perception.run(study, progress=progress)
+        perception.run(study, progress=progress, dataset=ds)  # the index of stage 1, not a second scan
         if not study.extends:  # the paper's Figures 3 and 4 and the training curves, into figures/
             import matplotlib.pyplot as plt
 

@@ -62,12 +62,12 @@ def training_curves(folder: str | Path):
     return fig
 
 
-def save_dataset_mosaic(study, path) -> None:
+def save_dataset_mosaic(study, path, ds=None) -> None:
     """`frames.png`: one test frame of every test setting of a study (the README's grid of rooms)."""
     from monolib import dataset
     from monolib.io import save_figure
 
-    ds = dataset.open_dataset(study)
+    ds = ds or dataset.open_dataset(study)
     sel = dataset.select_frames(study, ds, study.gcn.val_settings)
     per = study.protocol.frames
     frames = [sel.test[i * per + per // 3] for i in range(len(sel.test) // per)]
