@@ -30,7 +30,7 @@ def _time(fn, repeat: int) -> float:
 
 def graph_ms(width: int, height: int, repeat: int = 10, seed: int = 0) -> float:
     """Milliseconds to back-project a frame and build its nodes + edges (30 labels, blocky layout)."""
-    from monolib.scenegraphs import at_threshold, complete_graph
+    from monolib.graph import at_threshold, complete_graph
 
     rng = np.random.default_rng(seed)
     blocks = rng.integers(1, 31, (12, 16))

@@ -18,7 +18,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib import gcn, methods, paths, retrieval, scenegraphs
+from monolib import gcn, graph, methods, paths, retrieval, scenegraphs
 from monolib.io import atomic_path, read_json, write_json, write_text
 from monolib.params import Study, StudyError
 
@@ -60,7 +60,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         spec = study.gcn_spec(method)
         graphs = scenegraphs.load(study, scenario)
         both = spec.edges == "both"
-        split = {k: [scenegraphs.at_threshold(g, threshold, both) for g in v] for k, v in graphs.items()}
+        split = {k: [graph.at_threshold(g, threshold, both) for g in v] for k, v in graphs.items()}
         timings["graphs_s"] = time.perf_counter() - t
         t = time.perf_counter()
         result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads)

@@ -77,42 +77,34 @@ def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray,
     return x, med[:, :3].astype(np.float32)
 
 
-def edges_within(pos: torch.Tensor, threshold: float, both_directions: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
-    """Edges between every pair of nodes closer than `threshold` metres (inf: all pairs).
-
-    Returns (edge_index (2, E) long, edge_attr (E, 1) float lengths); with `both_directions` every pair appears
-    as (i, j) and (j, i), else only i < j (the published code's convention).
-    """
-    n = pos.shape[0]
-    if n < 2:
-        return torch.zeros((2, 0), dtype=torch.long), torch.zeros((0, 1), dtype=torch.float32)
-    d = torch.cdist(pos.double(), pos.double())
-    keep = d < threshold if math.isfinite(threshold) else torch.ones_like(d, dtype=torch.bool)
-    keep &= ~torch.eye(n, dtype=torch.bool)
-    if not both_directions:
-        keep &= torch.ones(n, n, dtype=torch.bool).triu(1)
-    i, j = keep.nonzero(as_tuple=True)
-    return torch.stack([i, j]), d[i, j].float().unsqueeze(1)
-
-
-def make_graph(x, pos, threshold: float, **meta) -> Data:
-    """A `Data` from nodes (x, pos) with the edges of `threshold`; `meta` (setting, frame, ...) is attached."""
+def complete_graph(x, pos, setting: str = "", frame: str = "") -> Data:
+    """A graph with every pair i < j and its length (from `pos`)."""
     x = torch.as_tensor(np.asarray(x), dtype=torch.float32).reshape(-1, NODE_FEATURES)
     pos = torch.as_tensor(np.asarray(pos), dtype=torch.float32).reshape(-1, 3)
-    edge_index, edge_attr = edges_within(pos, float(threshold))
-    return Data(x=x, pos=pos, edge_index=edge_index, edge_attr=edge_attr, **meta)
+    i, j = torch.triu_indices(len(x), len(x), offset=1)
+    length = (pos[i].double() - pos[j].double()).norm(dim=1).float()
+    return Data(x=x, pos=pos, pair_index=torch.stack([i, j]), pair_len=length, setting=setting, frame=frame,
+                num_nodes=len(x))
+
+
+def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Data:
+    """The scene graph of `threshold`: edges for pairs closer than it (inf: all), in both directions by default.
+
+    `edge_attr` (E, 1) holds the lengths. Works for graphs built here and for published graphs alike.
+    """
+    keep = g.pair_len < threshold if math.isfinite(threshold) else torch.ones_like(g.pair_len, dtype=torch.bool)
+    ei, length = g.pair_index[:, keep], g.pair_len[keep]
+    if both_directions:
+        ei, length = torch.cat([ei, ei.flip(0)], dim=1), torch.cat([length, length])
+    out = Data(x=g.x, edge_index=ei, edge_attr=length.unsqueeze(1), setting=g.setting, frame=g.frame,
+               num_nodes=g.num_nodes)
+    if getattr(g, "pos", None) is not None:
+        out.pos = g.pos
+    return out
 
 
 def build_scene_graph(rgb, depth, semantic, camera: Camera, threshold: float) -> Data:
     """The paper's scene graph of one frame: `x` = [NYU40 id, median R, G, B], `pos` = per-axis median (metres,
     camera frame), `edge_index` both directions for every pair closer than `threshold` (inf joins all pairs),
     `edge_attr` = lengths. A frame with no labelled pixel gives an empty graph (0 nodes)."""
-    x, pos = scene_nodes(rgb, depth, semantic, camera)
-    return make_graph(x, pos, threshold)
-
-
-def with_threshold(graph: Data, threshold: float) -> Data:
-    """The same nodes with the edges of another threshold (from `pos`)."""
-    g = graph.clone()
-    g.edge_index, g.edge_attr = edges_within(g.pos, float(threshold))
-    return g
+    return at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, camera)), threshold)

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib import gcn, paths, perception, scenegraphs
+from monolib import gcn, graph, paths, perception, scenegraphs
 from monolib.graph import scene_nodes
 from monolib.hypersim import Camera
 from monolib.io import atomic_path, read_json, write_json, write_text
@@ -83,7 +83,7 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     threshold = math.inf if c["threshold"] == "inf" else float(c["threshold"])
     model = gcn.GraphEncoder(spec)
     model.load_state_dict(torch.load(Path(c["folder"]) / "model.pt", weights_only=True))
-    test = [scenegraphs.at_threshold(g, threshold, spec.edges == "both")
+    test = [graph.at_threshold(g, threshold, spec.edges == "both")
             for g in scenegraphs.load(study, c["scenario"])["test"]]
     emb = gcn.embed(model, test).numpy().astype(np.float32)
     out.mkdir(parents=True, exist_ok=True)
@@ -150,7 +150,7 @@ class Localizer:
         x, pos = scene_nodes(frame, depth, semantic, Camera.canonical(w, h))
         threshold = math.inf if self.meta["threshold"] == "inf" else float(self.meta["threshold"])
         both = self.encoder.spec.edges == "both"
-        g = scenegraphs.at_threshold(scenegraphs.complete_graph(x, pos, "query", "query"), threshold, both)
+        g = graph.at_threshold(graph.complete_graph(x, pos, "query", "query"), threshold, both)
         t3 = time.perf_counter()
         z = gcn.embed(self.encoder, [g])[0]
         t4 = time.perf_counter()

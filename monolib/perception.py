@@ -272,7 +272,6 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
             if _complete(study, name, keys):
                 msg = f"perception: {tag} cached ({len(keys)} frames), nothing to do"
                 print(msg)
-                log.info(msg)
                 status[name] = "cached"
                 continue
             model, history, how = _train_or_load(study, name, sel, progress)

@@ -1,13 +1,12 @@
 """The graph stage: one complete scene graph per selected frame and scenario, cached on disk.
 
 A cached graph holds its nodes (`x`, and `pos` when built from depth) and every node pair i < j with its length
-(`pair_index`, `pair_len`). A threshold then only filters pairs (`at_threshold`), so the five thresholds of the
+(`pair_index`, `pair_len`). A threshold then only filters pairs (`monolib.graph.at_threshold`), so the five thresholds of the
 ablation share one build, and published graph files (lengths without positions) fit the same format.
 """
 from __future__ import annotations
 
 import logging
-import math
 import os
 import time
 from pathlib import Path
@@ -18,38 +17,12 @@ from torch_geometric.data import Data
 from tqdm.auto import tqdm
 
 from monolib import dataset as dataset_mod
-from monolib.graph import NODE_FEATURES, scene_nodes
+from monolib.graph import NODE_FEATURES, complete_graph, scene_nodes
 from monolib.io import DataFileError, atomic_path
 from monolib.params import Study, key_of
 
 log = logging.getLogger(__name__)
 SPLITS = ("train", "val", "test")
-
-
-def complete_graph(x, pos, setting: str, frame: str) -> Data:
-    """A graph with every pair i < j and its length (from `pos`)."""
-    x = torch.as_tensor(np.asarray(x), dtype=torch.float32).reshape(-1, NODE_FEATURES)
-    pos = torch.as_tensor(np.asarray(pos), dtype=torch.float32).reshape(-1, 3)
-    i, j = torch.triu_indices(len(x), len(x), offset=1)
-    length = (pos[i].double() - pos[j].double()).norm(dim=1).float()
-    return Data(x=x, pos=pos, pair_index=torch.stack([i, j]), pair_len=length, setting=setting, frame=frame,
-                num_nodes=len(x))
-
-
-def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Data:
-    """The scene graph of `threshold`: edges for pairs closer than it (inf: all), in both directions by default.
-
-    `edge_attr` (E, 1) holds the lengths. Works for graphs built here and for published graphs alike.
-    """
-    keep = g.pair_len < threshold if math.isfinite(threshold) else torch.ones_like(g.pair_len, dtype=torch.bool)
-    ei, length = g.pair_index[:, keep], g.pair_len[keep]
-    if both_directions:
-        ei, length = torch.cat([ei, ei.flip(0)], dim=1), torch.cat([length, length])
-    out = Data(x=g.x, edge_index=ei, edge_attr=length.unsqueeze(1), setting=g.setting, frame=g.frame,
-               num_nodes=g.num_nodes)
-    if getattr(g, "pos", None) is not None:
-        out.pos = g.pos
-    return out
 
 
 def scenario_key(study: Study, scenario: str) -> str:

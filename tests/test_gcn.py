@@ -7,7 +7,7 @@ import torch
 
 from monolib.gcn import GraphEncoder, draw_triplets, embed, train
 from monolib.params import GCNSpec
-from monolib.scenegraphs import at_threshold, complete_graph
+from monolib.graph import at_threshold, complete_graph
 
 
 def toy_graphs(n_settings=4, per=6, seed=0):

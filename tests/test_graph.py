@@ -6,7 +6,7 @@ import pytest
 
 from monolib.graph import build_scene_graph, grouped_median, scene_nodes
 from monolib.hypersim import Camera
-from monolib.scenegraphs import at_threshold, complete_graph
+from monolib.graph import at_threshold, complete_graph
 
 CAM = Camera.canonical(8, 6)
 

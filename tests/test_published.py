@@ -9,7 +9,7 @@ from torch_geometric.data import Data
 
 from monolib import published
 from monolib.params import load_study
-from monolib.scenegraphs import at_threshold
+from monolib.graph import at_threshold
 
 
 def published_graph(setting_digits: str, cam: str, frame: int, n: int, rng) -> Data:
