@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from monolib.graph import build_scene_graph, grouped_median, scene_nodes
+from monolib.graph import build_scene_graph, grouped_median, grouped_median_u8, scene_nodes
 from monolib.hypersim import Camera
 from monolib.graph import at_threshold, complete_graph
 
@@ -85,6 +85,42 @@ def test_grouped_median_matches_numpy_on_even_and_odd_groups():
     uniq, med = grouped_median(labels, values.T)
     for i, label in enumerate(uniq):
         np.testing.assert_allclose(med[i], np.median(values[labels == label], axis=0), rtol=1e-9, atol=1e-9)
+
+
+def test_colour_medians_from_histograms_are_exact():
+    rng = np.random.default_rng(2)
+    labels = rng.integers(1, 41, 4001)
+    labels[:2] = 40                      # the largest id, and a label with only one pixel
+    labels[labels == 17] = 18
+    labels[7] = 17
+    colours = rng.integers(0, 256, (4001, 3), dtype=np.uint8)
+    uniq = np.flatnonzero(np.bincount(labels))
+    med = grouped_median_u8(labels, colours, uniq)
+    for i, label in enumerate(uniq):
+        assert med[i].tolist() == np.median(colours[labels == label], axis=0).tolist()  # even counts: mean of two
+
+
+def test_all_valid_and_masked_frames_give_the_same_nodes():
+    """The fast path for fully valid frames (predicted ones) and the indexed path agree; float colours work too."""
+    rng = np.random.default_rng(3)
+    depth = rng.uniform(0.5, 9, (24, 32)).astype(np.float32)
+    semantic = rng.integers(1, 9, (24, 32)).astype(np.int16)
+    rgb = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    cam = Camera.canonical(32, 24)
+    x, pos = scene_nodes(rgb, depth, semantic, cam)
+    masked = depth.copy()
+    masked[0, 0] = np.nan                 # one invalid pixel forces the indexed path
+    xm, pm = scene_nodes(rgb, masked, semantic, cam)
+    keep = np.isfinite(masked)
+    pts = cam.backproject(depth)
+    for row, label in enumerate(xm[:, 0].astype(int)):
+        sel = keep & (semantic == label)
+        np.testing.assert_allclose(pm[row], np.median(pts[sel], axis=0), rtol=1e-6)
+        np.testing.assert_allclose(xm[row, 1:], np.median(rgb[sel], axis=0) / 255.0, rtol=1e-6)
+    assert x[:, 0].tolist() == xm[:, 0].tolist()
+    xf, pf = scene_nodes(rgb.astype(np.float32) / 255.0, depth, semantic, cam)
+    np.testing.assert_allclose(xf, x, atol=1e-6)
+    np.testing.assert_array_equal(pf, pos)
 
 
 def test_mismatched_shapes_raise():
