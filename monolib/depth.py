@@ -26,7 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from monolib.device import device
-from monolib.segmentation import colour_jitter, normalise, resize_image, resize_nearest, set_seed, to_batch
+from monolib.segmentation import colour_jitter, fit, normalise, resize_image, resize_nearest, set_seed, to_batch
 
 log = logging.getLogger(__name__)
 
@@ -344,9 +344,8 @@ def evaluate_cached(model, x: torch.Tensor, d: torch.Tensor, batch_size: int = 1
 
 def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
           max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None):
-    """Train with `depth_loss`; keep the epoch with the best validation delta<1.25. Returns (model, history)."""
-    from tqdm.auto import tqdm
-
+    """Train with `depth_loss` (`segmentation.fit`); keep the epoch with the best validation delta<1.25.
+    Returns (model, history)."""
     gen = set_seed(seed)
     model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
@@ -355,57 +354,21 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
     xv, dv = load_cache(val_frames, h, w, progress) if val_frames else (None, None)
     history = {"epochs": [], "read_seconds": time.perf_counter() - t0, "train_frames": len(x),
                "val_frames": 0 if xv is None else len(xv)}
-    opt = torch.optim.AdamW(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
-    steps_per_epoch = max(1, int(np.ceil(len(x) / spec.batch_size)))
-    total = spec.epochs * steps_per_epoch
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.15)
-    best, best_state, step = -np.inf, None, 0
-    t_train = time.perf_counter()
-    for epoch in range(spec.epochs):
-        te = time.perf_counter()
-        model.train()
-        order = torch.randperm(len(x), generator=gen)
-        losses = []
-        bar = tqdm(range(steps_per_epoch), desc=f"{spec.name} epoch {epoch + 1}/{spec.epochs}", disable=not progress, leave=False)
-        for b in bar:
-            idx = order[b * spec.batch_size : (b + 1) * spec.batch_size]
-            if len(idx) < 2:
-                continue
-            xb, db = x[idx].float(), d[idx]
-            flip = torch.rand(len(idx), generator=gen) < 0.5
-            xb = torch.where(flip[:, None, None, None], xb.flip(-1), xb)
-            db = torch.where(flip[:, None, None], db.flip(-1), db)
-            xb = colour_jitter(xb, gen)
-            loss = depth_loss(model(normalise(xb.to(device())))[:, 0], db.to(device()))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if step < total:
-                sched.step()
-            step += 1
-            losses.append(float(loss))
-            bar.set_postfix(loss=f"{losses[-1]:.3f}")
-            if step_callback:
-                step_callback(step, losses[-1])
-            if max_steps and step >= max_steps:
-                break
-        rec = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)) if losses else float("nan")}
-        metric = -rec["train_loss"]
-        if xv is not None:
-            sc = evaluate_cached(model, xv, dv)
-            rec.update({f"val_{k}": v for k, v in sc.items() if k != "frames"})
-            if np.isfinite(sc["delta1"]):
-                metric = sc["delta1"]
-        rec["seconds"] = time.perf_counter() - te
-        history["epochs"].append(rec)
-        log.info("%s epoch %d: %s", spec.name, epoch + 1, rec)
-        if metric > best or best_state is None:
-            best, best_state, history["best_epoch"] = metric, copy.deepcopy(model.state_dict()), epoch + 1
-        if max_steps and step >= max_steps:
-            break
-    history["train_seconds"] = time.perf_counter() - t_train
-    model.load_state_dict(best_state)
-    model.eval()
+
+    def batch_loss(model, idx):
+        xb, db = x[idx].float(), d[idx]
+        flip = torch.rand(len(idx), generator=gen) < 0.5
+        xb = torch.where(flip[:, None, None, None], xb.flip(-1), xb)
+        db = torch.where(flip[:, None, None], db.flip(-1), db)
+        xb = colour_jitter(xb, gen)
+        return depth_loss(model(normalise(xb.to(device())))[:, 0], db.to(device()))
+
+    def validate(model):
+        sc = evaluate_cached(model, xv, dv)
+        return {f"val_{k}": v for k, v in sc.items() if k != "frames"}, sc["delta1"]
+
+    model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history, progress,
+                max_steps, step_callback)
     return model, history
 
 

@@ -89,6 +89,67 @@ def set_seed(seed: int) -> torch.Generator:
     return g
 
 
+def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Optional[Callable],
+        gen: torch.Generator, history: dict, progress: bool = True, max_steps: Optional[int] = None,
+        step_callback: Optional[Callable[[int, float], None]] = None) -> nn.Module:
+    """The training loop of both perception networks: AdamW + one-cycle schedule over `spec.epochs` epochs of
+    shuffled batches, validation after each epoch, and the weights of the best epoch kept.
+
+    `batch_loss(model, idx)` returns the loss of the training frames `idx`; `validate(model)` returns
+    (record entries, selection metric; higher is better, NaN: fall back to minus the training loss). Appends one
+    record per epoch to ``history["epochs"]`` and sets ``best_epoch`` and ``train_seconds``.
+    """
+    from tqdm.auto import tqdm
+
+    opt = torch.optim.AdamW(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
+    steps_per_epoch = max(1, int(np.ceil(n_train / spec.batch_size)))
+    total = spec.epochs * steps_per_epoch
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.15)
+    best, best_state, step = -np.inf, None, 0
+    t_train = time.perf_counter()
+    for epoch in range(spec.epochs):
+        te = time.perf_counter()
+        model.train()
+        order = torch.randperm(n_train, generator=gen)
+        losses = []
+        bar = tqdm(range(steps_per_epoch), desc=f"{spec.name} epoch {epoch + 1}/{spec.epochs}", disable=not progress, leave=False)
+        for b in bar:
+            idx = order[b * spec.batch_size : (b + 1) * spec.batch_size]
+            if len(idx) < 2:  # BatchNorm needs two samples
+                continue
+            loss = batch_loss(model, idx)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            if step < total:
+                sched.step()
+            step += 1
+            losses.append(loss.item())
+            bar.set_postfix(loss=f"{losses[-1]:.3f}")
+            if step_callback:
+                step_callback(step, losses[-1])
+            if max_steps and step >= max_steps:
+                break
+        rec = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)) if losses else float("nan")}
+        metric = float("nan")
+        if validate is not None:
+            entries, metric = validate(model)
+            rec.update(entries)
+        if not np.isfinite(metric):
+            metric = -rec["train_loss"]
+        rec["seconds"] = time.perf_counter() - te
+        history["epochs"].append(rec)
+        log.info("%s epoch %d: %s", spec.name, epoch + 1, rec)
+        if metric > best or best_state is None:
+            best, best_state, history["best_epoch"] = metric, copy.deepcopy(model.state_dict()), epoch + 1
+        if max_steps and step >= max_steps:
+            break
+    history["train_seconds"] = time.perf_counter() - t_train
+    model.load_state_dict(best_state)
+    model.eval()
+    return model
+
+
 # ---- the model ---------------------------------------------------------------------------------------------
 
 _BUILDERS = {
@@ -237,70 +298,31 @@ def evaluate_cached(model: nn.Module, x: torch.Tensor, y: torch.Tensor, batch_si
 
 def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
           max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None):
-    """Train DeepLabV3 with cross-entropy; keep the epoch with the best validation mIoU.
+    """Train DeepLabV3 with cross-entropy (`fit`); keep the epoch with the best validation mIoU.
 
     Returns (model, history) where history = {"epochs": [{"epoch", "train_loss", "val_pixel_accuracy",
     "val_miou", "seconds"}], "best_epoch", "train_seconds", ...}. `max_steps` stops early (tests).
     """
-    from tqdm.auto import tqdm
-
     gen = set_seed(seed)
     model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
     t0 = time.perf_counter()
     x, y = load_cache(train_frames, h, w, progress)
     xv, yv = load_cache(val_frames, h, w, progress) if val_frames else (None, None)
-    read_s = time.perf_counter() - t0
-    opt = torch.optim.AdamW(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
-    steps_per_epoch = max(1, int(np.ceil(len(x) / spec.batch_size)))
-    total = spec.epochs * steps_per_epoch
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.15)
+    history = {"epochs": [], "read_seconds": time.perf_counter() - t0, "train_frames": len(x),
+               "val_frames": 0 if xv is None else len(xv)}
     loss_fn = nn.CrossEntropyLoss(ignore_index=IGNORE)
-    history = {"epochs": [], "read_seconds": read_s, "train_frames": len(x), "val_frames": 0 if xv is None else len(xv)}
-    best, best_state, step = -1.0, None, 0
-    t_train = time.perf_counter()
-    for epoch in range(spec.epochs):
-        te = time.perf_counter()
-        model.train()
-        order = torch.randperm(len(x), generator=gen)
-        losses = []
-        bar = tqdm(range(steps_per_epoch), desc=f"{spec.name} epoch {epoch + 1}/{spec.epochs}", disable=not progress, leave=False)
-        for b in bar:
-            idx = order[b * spec.batch_size : (b + 1) * spec.batch_size]
-            if len(idx) < 2:  # BatchNorm needs two samples
-                continue
-            xb, yb = augment(x[idx], y[idx], gen)
-            logits = model(normalise(xb.to(device())))["out"]
-            loss = loss_fn(logits, yb.to(device()))
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if step < total:
-                sched.step()
-            step += 1
-            losses.append(float(loss))
-            bar.set_postfix(loss=f"{losses[-1]:.3f}")
-            if step_callback:
-                step_callback(step, losses[-1])
-            if max_steps and step >= max_steps:
-                break
-        rec = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)) if losses else float("nan")}
-        if xv is not None:
-            sc = evaluate_cached(model, xv, yv)
-            rec.update(val_pixel_accuracy=sc["pixel_accuracy"], val_miou=sc["miou"])
-            metric = sc["miou"] if np.isfinite(sc["miou"]) else -rec["train_loss"]
-        else:
-            metric = -rec["train_loss"]
-        rec["seconds"] = time.perf_counter() - te
-        history["epochs"].append(rec)
-        log.info("%s epoch %d: %s", spec.name, epoch + 1, rec)
-        if metric > best or best_state is None:
-            best, best_state, history["best_epoch"] = metric, copy.deepcopy(model.state_dict()), epoch + 1
-        if max_steps and step >= max_steps:
-            break
-    history["train_seconds"] = time.perf_counter() - t_train
-    model.load_state_dict(best_state)
-    model.eval()
+
+    def batch_loss(model, idx):
+        xb, yb = augment(x[idx], y[idx], gen)
+        return loss_fn(model(normalise(xb.to(device())))["out"], yb.to(device()))
+
+    def validate(model):
+        sc = evaluate_cached(model, xv, yv)
+        return {"val_pixel_accuracy": sc["pixel_accuracy"], "val_miou": sc["miou"]}, sc["miou"]
+
+    model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history, progress,
+                max_steps, step_callback)
     return model, history
 
 
