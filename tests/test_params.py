@@ -54,3 +54,23 @@ def test_missing_data_folder_names_the_key(tmp_path):
     p.write_text((paths.PARAMS / "published.yaml").read_text().replace("runs/published_graphs", str(tmp_path / "nope")))
     with pytest.raises(StudyError, match="graphs_root: folder not found"):
         load_study(p)
+
+
+def test_an_extending_study_merges_key_by_key(tmp_path):
+    """`extends:` takes the base file as defaults; mappings merge, lists are replaced, and a mapping the extending
+    file re-lists completely keeps its own order (the ablations study puts quick's `ours` last)."""
+    base = tmp_path / "base.yaml"
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data["variants"] = {"ours": {"gcn": {"pooling": "meanmax"}, "thresholds": [2]}}
+    base.write_text(yaml.safe_dump(data))
+    child = tmp_path / "child.yaml"
+    child.write_text(yaml.safe_dump({
+        "name": "child", "extends": str(base), "seeds": [5],
+        "scenarios": {"s9": {"depth": "gt", "semantic": "gt"}},
+        "variants": {"gine": {"gcn": {"conv": "gine"}}, "ours": {"thresholds": None}}}))
+    s = load_study(child)
+    assert s.seeds == [5]
+    assert list(s.scenarios)[-1] == "s9" and list(s.scenarios)[:-1] == list(data["scenarios"])
+    assert list(s.variants) == ["gine", "ours"]
+    assert s.variants["ours"].gcn == {"pooling": "meanmax"} and s.variants["ours"].thresholds is None
+    assert load_study(base).variants["ours"].thresholds == [2.0]
