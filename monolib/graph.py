@@ -49,14 +49,14 @@ def grouped_median(labels: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, 
 def grouped_median_u8(labels: np.ndarray, channels: np.ndarray, uniq: np.ndarray) -> np.ndarray:
     """Exact per-label median of uint8 channels (N, C) for the labels `uniq` (all present): (L, C) float64.
 
-    One 256-bin histogram per label and channel (a single `bincount`), then the two middle ranks are read off
-    the cumulative counts: no sort and no loop. Even count = mean of the two middle values (as `numpy.median`).
+    One 256-bin histogram per label and channel (one `bincount` per channel), then the two middle ranks are read
+    off the cumulative counts: no sort, no loop over labels or pixels. Even count = mean of the two middle values
+    (as `numpy.median`).
     """
-    labels = np.asarray(labels, dtype=np.int64)
-    c = channels.shape[1]
-    n_labels = int(labels.max()) + 1
-    key = (labels * (c * 256))[:, None] + (np.arange(c) * 256) + channels
-    hist = np.bincount(key.ravel(), minlength=n_labels * c * 256).reshape(n_labels, c, 256)[uniq]
+    base = np.asarray(labels, dtype=np.intp) * 256
+    size = (int(uniq[-1]) + 1) * 256
+    hist = np.stack([np.bincount(base + channels[:, c], minlength=size).reshape(-1, 256)
+                     for c in range(channels.shape[1])], axis=1)[uniq]
     cum = np.cumsum(hist, axis=2)
     n = cum[:, :1, -1:]  # (L, 1, 1) pixels per label
     low = (cum <= (n - 1) // 2).sum(axis=2)
