@@ -9,7 +9,7 @@ STUDY ?= quick
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations smoke test bench clean-runs
+.PHONY: install study ablations perception-long smoke test bench clean-runs
 
 install: $(STAMP)
 
@@ -26,6 +26,10 @@ study: install
 # beyond the paper on the quick study's data (run `make study` first): encoder ablation, ours, depth scale
 ablations: install
 	$(VENV)/bin/monolib study ablations
+
+# the quick study's segmentation trained about three times longer (run `make study` first)
+perception-long: install
+	$(VENV)/bin/monolib perception perception_long
 
 smoke: install
 	$(VENV)/bin/monolib study smoke

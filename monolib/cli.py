@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+from monolib import paths
 from monolib.params import StudyError, load_study
 
 
@@ -55,7 +56,13 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "perception":
             from monolib import perception
 
-            print(perception.run(load_study(args.study)).to_string(index=False))
+            import matplotlib.pyplot as plt
+
+            spec = load_study(args.study)
+            print(perception.run(spec).to_string(index=False))
+            for draw in (perception.plot_training, perception.plot_depth_examples, perception.plot_semantic_examples):
+                plt.close(draw(spec))  # perception_training.png, fig3_depth.png, fig4_semantics.png
+            print(f"figures: {paths.figures_dir(spec.name)}")
         elif args.command == "index":
             from monolib import localize
 

@@ -33,12 +33,12 @@ def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed
 
 DEFAULT_STUDY = "quick"
 # the studies whose results are committed, and where (every other study writes into runs/<study>/figures/)
-COMMITTED_FIGURES = {"quick": "", "ablations": "ablations"}
+COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "perception_long": "perception_long"}
 
 
 def figures_dir(study_name: str) -> Path:
-    """Where a study's tables and figures go: `figures/` for the default (quick) study, `figures/ablations/` for
-    the ablations study, else `runs/<study>/figures/`."""
+    """Where a study's tables and figures go: `figures/` for the default (quick) study, `figures/<name>/` for the
+    other committed studies (`COMMITTED_FIGURES`), else `runs/<study>/figures/`."""
     if study_name in COMMITTED_FIGURES:
         return FIGURES / COMMITTED_FIGURES[study_name] if COMMITTED_FIGURES[study_name] else FIGURES
     return study_dir(study_name) / "figures"

@@ -74,6 +74,18 @@ def test_rerun_recomputes_nothing(smoke_study):
     assert {f: f.stat().st_mtime_ns for f in cell_files("smoke")} == before
 
 
+def test_perception_command_is_cached_and_draws_its_figures(smoke_study):
+    fig = paths.figures_dir("smoke")
+    for name in ("perception_training.png", "fig3_depth.png", "fig4_semantics.png"):
+        (fig / name).unlink(missing_ok=True)
+    out = subprocess.run(MONOLIB + ["perception", "smoke"], env=ENV, capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.count("nothing to do") == 3  # the segmentation net and both depth nets
+    assert "pixel_accuracy" in out.stdout and "delta1" in out.stdout
+    for name in ("perception_training.png", "fig3_depth.png", "fig4_semantics.png"):
+        assert (fig / name).stat().st_size > 10_000, name
+
+
 def test_killed_study_resumes_without_recomputing(smoke_study, tmp_path):
     """A study over the smoke dataset (ground truth only): killed after its first cells, then run again."""
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
