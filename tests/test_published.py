@@ -72,6 +72,10 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
     result = cell.run_cell(s, "gcn", "s1", 2.0, 0, out_dir=str(tmp_path / "cell"))
     assert set(result["metrics"]) == {"recall@1", "recall@5", "recall@10", "precision@2", "precision@4", "precision@6"}
     assert (tmp_path / "cell" / "rankings.csv").exists()
+    # the study file's encoder variants run on published graphs too (label embedding, GINE on lengths, batch-hard)
+    for method in ("ours", "gine", "batch_hard", "gcn_published"):
+        r = cell.run_cell(s, method, "s1", 1.0, 0, out_dir=str(tmp_path / method))
+        assert r["method"] == method and 0 <= r["metrics"]["recall@1"] <= 100
 
 
 SAMPLE = published.Path(__file__).resolve().parents[2] / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"
