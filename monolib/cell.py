@@ -3,13 +3,16 @@
 `notebooks/ablation_cell.ipynb` calls `run_cell`; so do the tests. A cell writes into its folder:
 `cell.json` (written last: its presence means the cell is complete), `rankings.csv` (top 10 per query),
 `protocol.csv` (which test frames were queries / positives), `embeddings.npy` and, for trained methods,
-`history.csv` and `model.pt` (the encoder's weights, used by `monolib index`).
+`history.csv` and `model.pt` (the encoder's weights, used by `monolib index`). A cell whose graphs equal those of
+a smaller threshold (`monolib.study.same_graphs`) is a copy of that cell's files, and its `cell.json` says so
+(`same_graphs_as`).
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
 import math
+import shutil
 import time
 from pathlib import Path
 from typing import Optional
@@ -112,4 +115,20 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         with atomic_path(folder / "model.pt") as tmp:
             torch.save(state, tmp)
     write_json(folder / "cell.json", record)  # last: marks the cell complete
+    return record
+
+
+def copy_cell(source: Path, folder: Path, threshold: float, source_name: str) -> dict:
+    """The results of the cell in `source` as those of `threshold` (the two have identical scene graphs): its files
+    copied, `cell.json` with this threshold and ``same_graphs_as`` naming the source (written last, as always)."""
+    t = time.perf_counter()
+    record = read_json(source / "cell.json")
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in ("rankings.csv", "protocol.csv", "embeddings.npy", "history.csv", "model.pt"):
+        if (source / name).is_file():
+            with atomic_path(folder / name) as tmp:
+                shutil.copyfile(source / name, tmp)
+    record.update(threshold=threshold if math.isfinite(threshold) else "inf", same_graphs_as=source_name,
+                  timings={"copy_s": time.perf_counter() - t})
+    write_json(folder / "cell.json", record)
     return record

@@ -51,6 +51,37 @@ def grid(study: Study) -> list[CellSpec]:
     return cells
 
 
+def same_graphs(study: Study, cells: list[CellSpec]) -> dict[str, CellSpec]:
+    """{cell name: source cell} for the graph cells whose scene graphs equal those of a smaller threshold of the
+    same method, scenario and seed: no pair of nodes, in any frame of any split, has a length between the two
+    thresholds (edges only grow with the threshold, so equal edge totals mean equal graphs). Such a cell is the same
+    computation as its source (same graphs, encoder, seed), so the runner copies the source's results into it.
+    With predicted depth every pair is often closer than 5 m, and 5, 10 and inf give one graph set."""
+    import torch
+
+    from monolib import scenegraphs
+
+    groups: dict[tuple, list[CellSpec]] = {}
+    for c in cells:
+        if methods.kind(c.method, study) == "graph":
+            groups.setdefault((c.method, c.scenario, c.seed), []).append(c)
+    lengths: dict[str, torch.Tensor] = {}
+    out = {}
+    for (_, scenario, _), group in groups.items():
+        if scenario not in lengths:
+            graphs = scenegraphs.load(study, scenario)
+            lengths[scenario] = torch.cat([g.pair_len for split in graphs.values() for g in split] + [torch.zeros(0)])
+        pair_len = lengths[scenario]
+        source, source_edges = None, -1
+        for c in sorted(group, key=lambda c: c.threshold):
+            edges = int((pair_len < c.threshold).sum()) if math.isfinite(c.threshold) else len(pair_len)
+            if edges == source_edges:
+                out[c.name] = source
+            else:
+                source, source_edges = c, edges
+    return out
+
+
 def check_notebook_parameters(notebook: Path, names: set[str]) -> None:
     """Fail before any work when the grid sets a parameter the notebook does not declare."""
     import papermill
@@ -95,17 +126,26 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True) -> di
     """Run every cell that has no results yet through papermill, in `jobs` parallel worker processes."""
     from monolib.cell import is_complete
 
+    from monolib.cell import copy_cell
+
+    def folder(c: CellSpec) -> Path:
+        return paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed)
+
     cells = grid(study)
-    todo = [c for c in cells if not is_complete(paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed))]
-    log.info("grid: %d cells, %d done, %d to run", len(cells), len(cells) - len(todo), len(todo))
-    print(f"grid: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run", flush=True)
+    todo = [c for c in cells if not is_complete(folder(c))]
+    copies = same_graphs(study, cells) if todo else {}
+    run = [c for c in todo if c.name not in copies]
+    log.info("grid: %d cells, %d done, %d to run, %d to copy", len(cells), len(cells) - len(todo), len(run),
+             len(todo) - len(run))
+    print(f"grid: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run "
+          f"({len(todo) - len(run)} of them have the graphs of a smaller threshold: copied from it)", flush=True)
     jobs = jobs or study.jobs
     failed = []
     t0 = time.perf_counter()
-    if todo:
+    if run:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = {pool.submit(_run_cell_notebook, study.path, study.name, c, study.cell_timeout): c for c in todo}
-            bar = tqdm(total=len(todo), desc="cells", disable=not progress)
+            futures = {pool.submit(_run_cell_notebook, study.path, study.name, c, study.cell_timeout): c for c in run}
+            bar = tqdm(total=len(run), desc="cells", disable=not progress)
             for fut in as_completed(futures):
                 try:
                     fut.result()
@@ -114,6 +154,13 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True) -> di
                     log.error("cell %s failed: %s", futures[fut].name, exc)
                 bar.update(1)
             bar.close()
+    for c in todo:
+        if c.name in copies:
+            source = copies[c.name]
+            if is_complete(folder(source)):
+                copy_cell(folder(source), folder(c), c.threshold, source.name)
+            else:
+                failed.append((c.name, f"its source cell {source.name} did not finish"))
     if failed:
         names = ", ".join(n for n, _ in failed)
         raise RuntimeError(f"{len(failed)} cells failed ({names}); their notebooks are under "

@@ -86,6 +86,27 @@ def test_perception_command_is_cached_and_draws_its_figures(smoke_study):
         assert (fig / name).stat().st_size > 10_000, name
 
 
+def test_cells_with_the_graphs_of_a_smaller_threshold_are_exact_copies(smoke_study, tmp_path):
+    """The runner copies a cell whose graphs equal a smaller threshold's; running it for real gives the same."""
+    from monolib import cell, scenegraphs
+    from monolib.graph import at_threshold
+
+    s = load_study("smoke")
+    copied = [json.loads(f.read_text()) for f in cell_files("smoke")]
+    copied = [c for c in copied if c.get("same_graphs_as")]
+    assert copied, "the smoke study has thresholds with identical graphs (predicted depth: all pairs within 5 m)"
+    c = max(copied, key=lambda c: (c["scenario"], str(c["threshold"])))
+    thr = math.inf if c["threshold"] == "inf" else float(c["threshold"])
+    source_thr = float(c["same_graphs_as"].split("__t")[1].split("__")[0])
+    for split in scenegraphs.load(s, c["scenario"]).values():
+        for g in split:
+            assert at_threshold(g, thr).edge_index.tolist() == at_threshold(g, source_thr).edge_index.tolist()
+    again = cell.run_cell(s, c["method"], c["scenario"], thr, c["seed"], out_dir=str(tmp_path / "again"))
+    assert again["metrics"] == c["metrics"]
+    folder = paths.cell_dir("smoke", c["method"], c["scenario"], thr, c["seed"])
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "again" / "rankings.csv"), pd.read_csv(folder / "rankings.csv"))
+
+
 def test_killed_study_resumes_without_recomputing(smoke_study, tmp_path):
     """A study over the smoke dataset (ground truth only): killed after its first cells, then run again."""
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
