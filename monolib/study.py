@@ -124,9 +124,7 @@ def _run_cell_notebook(study_file: str, study_name: str, cell: CellSpec, timeout
 
 def run_grid(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     """Run every cell that has no results yet through papermill, in `jobs` parallel worker processes."""
-    from monolib.cell import is_complete
-
-    from monolib.cell import copy_cell
+    from monolib.cell import copy_cell, is_complete
 
     def folder(c: CellSpec) -> Path:
         return paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed)
