@@ -124,10 +124,10 @@ def copy_cell(source: Path, folder: Path, threshold: float, source_name: str) ->
     t = time.perf_counter()
     record = read_json(source / "cell.json")
     folder.mkdir(parents=True, exist_ok=True)
-    for name in ("rankings.csv", "protocol.csv", "embeddings.npy", "history.csv", "model.pt"):
-        if (source / name).is_file():
-            with atomic_path(folder / name) as tmp:
-                shutil.copyfile(source / name, tmp)
+    for f in source.iterdir():
+        if f.is_file() and f.name != "cell.json" and not f.name.startswith("."):  # not a killed write's temp file
+            with atomic_path(folder / f.name) as tmp:
+                shutil.copyfile(f, tmp)
     record.update(threshold=threshold if math.isfinite(threshold) else "inf", same_graphs_as=source_name,
                   timings={"copy_s": time.perf_counter() - t})
     write_json(folder / "cell.json", record)

@@ -56,12 +56,9 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "perception":
             from monolib import perception
 
-            import matplotlib.pyplot as plt
-
             spec = load_study(args.study)
             print(perception.run(spec).to_string(index=False))
-            for draw in (perception.plot_training, perception.plot_depth_examples, perception.plot_semantic_examples):
-                plt.close(draw(spec))  # perception_training.png, fig3_depth.png, fig4_semantics.png
+            perception.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
             print(f"figures: {paths.figures_dir(spec.name)}")
         elif args.command == "index":
             from monolib import localize

@@ -111,12 +111,17 @@ def complete_graph(x, pos, setting: str = "", frame: str = "") -> Data:
                 num_nodes=len(x))
 
 
+def pair_mask(pair_len: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Which node pairs become edges at `threshold`: those closer than it (inf: all of them)."""
+    return pair_len < threshold if math.isfinite(threshold) else torch.ones_like(pair_len, dtype=torch.bool)
+
+
 def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Data:
     """The scene graph of `threshold`: edges for pairs closer than it (inf: all), in both directions by default.
 
     `edge_attr` (E, 1) holds the lengths. Works for graphs built here and for published graphs alike.
     """
-    keep = g.pair_len < threshold if math.isfinite(threshold) else torch.ones_like(g.pair_len, dtype=torch.bool)
+    keep = pair_mask(g.pair_len, threshold)
     ei, length = g.pair_index[:, keep], g.pair_len[keep]
     if both_directions:
         ei, length = torch.cat([ei, ei.flip(0)], dim=1), torch.cat([length, length])

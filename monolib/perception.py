@@ -407,6 +407,15 @@ def plot_semantic_examples(study: Study, n: int = 3, save: bool = True, dataset=
     return fig
 
 
+def draw_figures(study: Study, dataset=None) -> None:
+    """The stage's figures into `figures_dir`: training curves, Figure 3 (depth) and Figure 4 (semantics)."""
+    import matplotlib.pyplot as plt
+
+    plt.close(plot_training(study))
+    plt.close(plot_depth_examples(study, dataset=dataset))
+    plt.close(plot_semantic_examples(study, dataset=dataset))
+
+
 def load_trained(study: Study, name: str):
     """The trained model `name` of the study from its cache (for the localizer); one clear error when missing."""
     from monolib import depth as dep

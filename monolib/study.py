@@ -60,6 +60,7 @@ def same_graphs(study: Study, cells: list[CellSpec]) -> dict[str, CellSpec]:
     import torch
 
     from monolib import scenegraphs
+    from monolib.graph import pair_mask
 
     groups: dict[tuple, list[CellSpec]] = {}
     for c in cells:
@@ -74,7 +75,7 @@ def same_graphs(study: Study, cells: list[CellSpec]) -> dict[str, CellSpec]:
         pair_len = lengths[scenario]
         source, source_edges = None, -1
         for c in sorted(group, key=lambda c: c.threshold):
-            edges = int((pair_len < c.threshold).sum()) if math.isfinite(c.threshold) else len(pair_len)
+            edges = int(pair_mask(pair_len, c.threshold).sum())
             if edges == source_edges:
                 out[c.name] = source
             else:
@@ -215,10 +216,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
         print("[2/5] perception", flush=True)
         perception.run(study, progress=progress, dataset=ds)  # the index of stage 1, not a second scan
         if not study.extends:  # the paper's Figures 3 and 4 and the training curves, into figures/
-            import matplotlib.pyplot as plt
-
-            for draw in (perception.plot_training, perception.plot_depth_examples, perception.plot_semantic_examples):
-                plt.close(draw(study))
+            perception.draw_figures(study, dataset=ds)
     else:
         print("[2/5] perception: not needed (ground-truth scenarios only)", flush=True)
     times["perception_s"] = time.perf_counter() - t
