@@ -6,6 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 STUDY ?= quick
+NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
@@ -13,7 +14,12 @@ export PYTHONHASHSEED := 0
 
 install: $(STAMP)
 
+# The environment takes about 6.5 GB (torch 2.14.1 is a CUDA build): say so up front rather than fail half-way
+# through pip with "No space left on device".
 $(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -c "import shutil, sys; free = shutil.disk_usage('.').free / 1e9; \
+	sys.exit(0 if free >= $(NEED_GB) else f'make install: {free:.1f} GB free on the disk of $(CURDIR), \
+	the virtual environment $(VENV)/ needs about $(NEED_GB) GB (torch 2.14.1 with its CUDA libraries). Free some space and run make again.')"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
