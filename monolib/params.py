@@ -361,10 +361,7 @@ def _check(study: Study, check_files: bool = True) -> None:
     for vname, v in study.variants.items():
         if vname in METHODS:
             bad(f"variants.{vname}", "a variant cannot reuse the name of a built-in method")
-        try:
-            specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn}, f"variants.{vname}.gcn")
-        except StudyError as exc:
-            raise StudyError(str(exc).replace("variants." + vname + ".gcn.", f"variants.{vname}.gcn.")) from None
+        specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn}, f"variants.{vname}.gcn")
         for sc in v.scenarios or []:
             if sc not in study.scenarios:
                 bad(f"variants.{vname}.scenarios", f"unknown scenario {sc!r}")

@@ -38,6 +38,10 @@ def write(tmp_path, change):
     (lambda d: d.update(thresholds=[-1]), "thresholds"),
     (lambda d: d.update(methods=["magic"]), "methods: unknown method 'magic'"),
     (lambda d: d["perception"]["depth"][0].update(checkpoint="/nope.pt", backbone="resnet50"), "perception.depth\\[0\\].checkpoint"),
+    (lambda d: d.update(variants={"v": {"gcn": {"poolng": "max"}}}), "variants.v.gcn.poolng: unknown key"),
+    (lambda d: d.update(variants={"v": {"gcn": {"pooling": "sum"}}}), "variants.v.gcn.pooling: expected one of max, meanmax"),
+    (lambda d: d.update(variants={"v": {"scenarios": ["s9"]}}), "variants.v.scenarios: unknown scenario 's9'"),
+    (lambda d: d.update(variants={"gcn": {}}), "variants.gcn: a variant cannot reuse the name"),
 ])
 def test_bad_study_names_the_key(tmp_path, change, key):
     with pytest.raises(StudyError, match=key):
