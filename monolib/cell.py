@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import shutil
 import time
 from pathlib import Path
@@ -96,7 +95,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     sc = study.scenarios.get(scenario)
     record = {
         "method": method, "kind": kind,
-        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario, "threshold": threshold if math.isfinite(threshold) else "inf",
+        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario, "threshold": paths.threshold_json(threshold),
         "seed": int(seed), "study": study.name, "study_file": study.path,
         "scenario_label": sc.label if sc else "RGB only (no graph)",
         "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
@@ -128,7 +127,7 @@ def copy_cell(source: Path, folder: Path, threshold: float, source_name: str) ->
         if f.is_file() and f.name != "cell.json" and not f.name.startswith("."):  # not a killed write's temp file
             with atomic_path(folder / f.name) as tmp:
                 shutil.copyfile(f, tmp)
-    record.update(threshold=threshold if math.isfinite(threshold) else "inf", same_graphs_as=source_name,
+    record.update(threshold=paths.threshold_json(threshold), same_graphs_as=source_name,
                   timings={"copy_s": time.perf_counter() - t})
     write_json(folder / "cell.json", record)
     return record

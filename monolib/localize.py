@@ -9,7 +9,6 @@ Hypersim canonical camera (60 degree horizontal field of view).
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,7 +79,7 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     c = pick_cell(study, method)
     sc = study.scenarios[c["scenario"]]
     spec = study.gcn_spec(c["method"])
-    threshold = math.inf if c["threshold"] == "inf" else float(c["threshold"])
+    threshold = float(c["threshold"])  # "inf" reads as inf
     model = gcn.GraphEncoder(spec)
     model.load_state_dict(torch.load(Path(c["folder"]) / "model.pt", weights_only=True))
     test = [graph.at_threshold(g, threshold, spec.edges == "both")
@@ -148,7 +147,7 @@ class Localizer:
         depth = depth_mod.predict(self.depth, frame[None])[0]
         t2 = time.perf_counter()
         x, pos = scene_nodes(frame, depth, semantic, Camera.canonical(w, h))
-        threshold = math.inf if self.meta["threshold"] == "inf" else float(self.meta["threshold"])
+        threshold = float(self.meta["threshold"])  # "inf" reads as inf
         both = self.encoder.spec.edges == "both"
         g = graph.at_threshold(graph.complete_graph(x, pos, "query", "query"), threshold, both)
         t3 = time.perf_counter()

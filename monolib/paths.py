@@ -1,6 +1,7 @@
 """Every path of the project comes from here; nothing depends on the current working directory."""
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -24,6 +25,12 @@ def threshold_tag(threshold: float) -> str:
     if t == float("inf"):
         return "inf"
     return f"{t:g}"
+
+
+def threshold_json(threshold: float) -> float | str:
+    """A threshold as cell.json stores it: JSON has no infinity, so inf -> 'inf' (`float()` reads both back)."""
+    t = float(threshold)
+    return t if math.isfinite(t) else "inf"
 
 
 def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed: int) -> Path:

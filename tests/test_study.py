@@ -90,14 +90,15 @@ def test_cells_with_the_graphs_of_a_smaller_threshold_are_exact_copies(smoke_stu
     """The runner copies a cell whose graphs equal a smaller threshold's; running it for real gives the same."""
     from monolib import cell, scenegraphs
     from monolib.graph import at_threshold
+    from monolib.study import CellSpec, grid, same_graphs
 
     s = load_study("smoke")
     copied = [json.loads(f.read_text()) for f in cell_files("smoke")]
     copied = [c for c in copied if c.get("same_graphs_as")]
     assert copied, "the smoke study has thresholds with identical graphs (predicted depth: all pairs within 5 m)"
     c = max(copied, key=lambda c: (c["scenario"], str(c["threshold"])))
-    thr = math.inf if c["threshold"] == "inf" else float(c["threshold"])
-    source_thr = float(c["same_graphs_as"].split("__t")[1].split("__")[0])
+    thr = float(c["threshold"])  # "inf" reads as inf
+    source_thr = same_graphs(s, grid(s))[CellSpec(c["method"], c["scenario"], thr, c["seed"]).name].threshold
     for split in scenegraphs.load(s, c["scenario"]).values():
         for g in split:
             assert at_threshold(g, thr).edge_index.tolist() == at_threshold(g, source_thr).edge_index.tolist()
