@@ -2,9 +2,17 @@
 
 Words (design.md): a *setting* is one room configuration (folder ``ai_VVV_NNN``), a *scene* one camera trajectory
 (``cam_XX``), a *frame* one image of it. A *family* is one volume ``ai_9FF``: its settings share the room type, the
-furniture catalogue (object types and their dimensions) and the materials, and differ in layout, doors and windows,
+furniture catalogue (object types and their dimensions), the materials, doors and windows, and differ in layout,
 lighting and viewpoints -- the paper's "two neighbouring offices". Volumes start at 900 so a synthetic setting can
 never be confused with a real Hypersim scene.
+
+What makes it look like Hypersim where place recognition is decided (../shared/docs/real-hypersim-statistics.md;
+`monolib.fidelity` measures it for every study): each family has its own paints, woods, tiles and fabrics drawn from
+a wide continuous space, so walls and floors of two places differ more than one wall seen twice; surfaces carry
+clutter (vases, bottles, bowls, books, table lamps), floors carry plants, some families have skirting boards and
+pendant lamps; the cameras of a setting dwell on one part of the room (`make_trajectories`) with one exposure per
+scene, and some of them look up enough to show the ceiling. The test split holds one setting per family (the
+`paper` protocol) and, for the first `test_siblings` families, a sibling setting (the `siblings` protocol).
 
 Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to
 the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim
@@ -33,10 +41,10 @@ from monolib.io import atomic_path, write_h5, write_json, write_text
 from monolib.labels import ID
 
 VOLUME0 = 900
-FORMAT_VERSION = 3  # bump when the generator changes: finished settings with another version are re-rendered
+FORMAT_VERSION = 4  # bump when the generator changes: finished settings with another version are re-rendered
 FOV_X = math.pi / 3
 H5_COMPRESSION = 4  # gzip level (Hypersim uses 9; 4 halves the write time at ~1% larger files)
-N_PANS = 4  # each scene pans through N_PANS + 1 look-at targets on room content
+N_PROP_MATERIALS = 4  # colours of a family's small props
 
 # ai_037_002's tilt-shift camera (metadata_camera_parameters.csv of ml-hypersim)
 TILT_SHIFT_M = ((0.579607251426182, 0.0, -0.06955286861651404),
@@ -107,83 +115,80 @@ def _hsv(h: float, s: float, v: float) -> tuple:
     return tuple(float(c) ** 2.2 for c in colorsys.hsv_to_rgb(h % 1.0, s, v))  # sRGB-ish -> linear albedo
 
 
-def _palette(seed: int) -> dict[str, list[Material]]:
-    """The study's global palette: a few paints, woods, fabrics... that every family draws from.
+def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material]:
+    """One family's materials, drawn from a wide continuous space of paints, woods, tiles and fabrics.
 
-    Families share materials across room types (so colour alone tells little about the place), and the members of
-    a family share them exactly.
+    Every setting of the family (siblings included) uses exactly these; two families almost never share a wall or
+    floor colour. Real Hypersim rooms differ this way: between two places the wall and floor colours spread 2.6
+    times more than between two frames of one place (../shared/docs/real-hypersim-statistics.md).
     """
-    rng = np.random.default_rng([seed, 6007])
     u = rng.uniform
-    P: dict[str, list[Material]] = {}
-    # wall paints: mostly the neutrals of real rooms (white, off-white, grey, beige), a few pale colours
-    P["paint"] = [Material(PAINT, _hsv(h, sat, v), seed=u(0, 100))
-                  for h, sat, v in ((0.1, 0.02, 0.92), (0.11, 0.07, 0.9), (0.6, 0.03, 0.78), (0.1, 0.15, 0.85),
-                                    (0.58, 0.12, 0.85), (0.3, 0.12, 0.82), (0.95, 0.1, 0.88))]
-    P["wood"] = [Material(WOOD, _hsv(u(0.05, 0.1), u(0.35, 0.7), v), _hsv(u(0.04, 0.09), u(0.5, 0.8), v * 0.55),
-                          u(50, 110), u(0, 100)) for v in (0.35, 0.5, 0.65, 0.8)]
-    P["floorwood"] = [Material(WOOD, _hsv(u(0.05, 0.1), u(0.35, 0.65), v), _hsv(u(0.04, 0.09), u(0.5, 0.8), v * 0.5),
-                               u(40, 90), u(0, 100)) for v in (0.4, 0.6, 0.75)]
-    P["tiles"] = [Material(TILES, _hsv(h, sat, v), _hsv(h, 0.05, 0.45), sc, u(0, 100))
-                  for h, sat, v, sc in ((0.6, 0.05, 0.85, 0.3), (0.1, 0.15, 0.75, 0.45), (0.55, 0.2, 0.7, 0.25))]
-    P["rug"] = [Material(RUG, _hsv(h, 0.3, 0.5), _hsv(h + 0.1, 0.3, 0.7), u(200, 400), u(0, 100))
-                for h in (0.0, 0.6, 0.1)]
-    P["fabric"] = [Material(FABRIC, _hsv(h, sat, v), scale=u(150, 320), seed=u(0, 100))
-                   for h, sat, v in ((0.0, 0.5, 0.5), (0.6, 0.45, 0.45), (0.3, 0.35, 0.45), (0.1, 0.25, 0.7),
-                                     (0.0, 0.0, 0.35), (0.75, 0.3, 0.4))]
-    P["colour"] = [Material(PAINT, _hsv(h, sat, v), seed=u(0, 100))
-                   for h, sat, v in ((0.0, 0.0, 0.92), (0.0, 0.0, 0.25), (0.58, 0.3, 0.6), (0.08, 0.4, 0.75),
-                                     (0.35, 0.3, 0.55))]
-    P["metal"] = [Material(PLAIN, _hsv(0.6, 0.03, v)) for v in (0.2, 0.45, 0.7)]
-    P["stone"] = [Material(STONE, _hsv(h, 0.08, v), _hsv(h, 0.1, v * 0.7), u(60, 120), u(0, 100))
-                  for h, v in ((0.1, 0.85), (0.6, 0.4), (0.08, 0.6))]
-    P["curtain"] = [Material(FABRIC, _hsv(h, sat, v), scale=u(15, 30), seed=u(0, 100))
-                    for h, sat, v in ((0.1, 0.2, 0.85), (0.6, 0.35, 0.5), (0.0, 0.4, 0.5))]
-    P["picture"] = [Material(PICTURE, _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)), _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)),
-                             u(2, 7), u(0, 100)) for _ in range(8)]
-    return P
 
+    def paint(sat_hi=0.55, v=(0.45, 0.95)) -> Material:
+        # a third of the paints are near-neutral (white, grey, beige), the rest carry a colour
+        sat = u(0.0, 0.08) if u() < 0.33 else u(0.1, sat_hi)
+        return Material(PAINT, _hsv(u(0, 1), sat, u(*v)), seed=u(0, 100))
 
-def _family_materials(rng: np.random.Generator, room: str, P: dict) -> dict[str, Material]:
-    """One family's materials, drawn from the global palette P: every setting of the family uses exactly these."""
-    u = rng.uniform
-    pick = lambda key: P[key][int(rng.integers(len(P[key])))]
+    def wood(v=(0.25, 0.85)) -> Material:
+        val = u(*v)
+        return Material(WOOD, _hsv(u(0.03, 0.11), u(0.3, 0.75), val), _hsv(u(0.03, 0.1), u(0.45, 0.85), val * 0.55),
+                        u(40, 110), u(0, 100))
+
+    def fabric(scale=(150, 320)) -> Material:
+        return Material(FABRIC, _hsv(u(0, 1), u(0.05, 0.6), u(0.25, 0.85)), scale=u(*scale), seed=u(0, 100))
+
+    def tiles() -> Material:
+        h, v = u(0, 1), u(0.35, 0.9)
+        return Material(TILES, _hsv(h, u(0.0, 0.4), v), _hsv(h, 0.05, v * 0.55), u(0.2, 0.5), u(0, 100))
+
+    def rug() -> Material:
+        h = u(0, 1)
+        return Material(RUG, _hsv(h, u(0.15, 0.6), u(0.25, 0.75)), _hsv(h + u(-0.15, 0.15), u(0.1, 0.5), u(0.4, 0.85)),
+                        u(200, 400), u(0, 100))
+
+    def stone() -> Material:
+        h, v = u(0.0, 1.0), u(0.35, 0.9)
+        return Material(STONE, _hsv(h, u(0.02, 0.2), v), _hsv(h, 0.1, v * 0.7), u(60, 120), u(0, 100))
+
     m: dict[str, Material] = {}
-    wp = np.array([0.22, 0.2, 0.16, 0.16, 0.1, 0.08, 0.08])
-    m["wall"] = P["paint"][int(rng.choice(len(wp), p=wp))]
-    m["wall2"] = pick("paint")  # accent wall (same for every member)
-    m["ceiling"] = Material(PAINT, _hsv(0.1, 0.03, 0.93), seed=3.0)
+    r = u()
+    m["wall"] = paint() if r < 0.8 else (wood((0.35, 0.8)) if r < 0.9 else stone())
+    m["ceiling"] = Material(PAINT, _hsv(u(0.05, 0.15), u(0.0, 0.08), u(0.8, 0.95)), seed=3.0)
     if room in ("kitchen", "bathroom"):
-        m["floor"] = pick("tiles")
-    elif room in ("bedroom", "office", "classroom", "library") and u() < 0.4:
-        m["floor"] = pick("rug")
+        m["floor"] = tiles() if u() < 0.75 else stone()
     else:
-        m["floor"] = pick("floorwood")
-    m["door"] = pick("wood") if u() < 0.6 else pick("colour")
-    m["frame"] = Material(PAINT, _hsv(0.1, 0.03, 0.9), seed=2.0)
+        r = u()
+        m["floor"] = wood() if r < 0.5 else (rug() if r < 0.75 else (tiles() if r < 0.9 else stone()))
+    m["door"] = wood() if u() < 0.6 else paint(0.5, (0.2, 0.95))
+    m["frame"] = Material(PAINT, _hsv(u(0, 1), u(0.0, 0.1), u(0.7, 0.95)), seed=2.0)
+    m["skirting"] = m["frame"] if u() < 0.5 else wood()
     m["glass"] = Material(GLASS, (0.05, 0.05, 0.05), emission=(1.0, 1.1, 1.3))
-    m["wood"] = pick("wood")
-    m["wood2"] = pick("wood") if u() < 0.5 else pick("colour")
-    m["fabric"] = pick("fabric")
-    m["fabric2"] = pick("fabric")
-    m["pillow"] = pick("fabric") if u() < 0.5 else Material(FABRIC, _hsv(0.1, 0.05, 0.9), scale=250, seed=5.0)
-    m["metal"] = pick("metal")
+    m["wood"] = wood()
+    m["wood2"] = wood() if u() < 0.5 else paint(0.6, (0.2, 0.95))
+    m["fabric"] = fabric()
+    m["fabric2"] = fabric()
+    m["pillow"] = fabric()
+    m["metal"] = Material(PLAIN, _hsv(0.6, 0.03, u(0.2, 0.75)))
     m["white"] = Material(PLAIN, _hsv(0.6, 0.02, 0.92))
-    m["appliance"] = pick("colour") if u() < 0.3 else Material(PLAIN, _hsv(0.6, 0.02, 0.85))
+    m["appliance"] = paint(0.5, (0.3, 0.9)) if u() < 0.3 else Material(PLAIN, _hsv(0.6, 0.02, u(0.75, 0.9)))
     m["screen"] = Material(PLAIN, (0.01, 0.01, 0.012))
     m["books"] = Material(BOOKS, (0.5, 0.3, 0.2), scale=u(0.025, 0.045), seed=u(0, 100))
-    m["stone"] = pick("stone")
+    m["stone"] = stone()
     m["board"] = Material(PLAIN, (0.92, 0.93, 0.93))
-    m["mat"] = pick("rug")
+    m["mat"] = rug()
     m["cardboard"] = Material(PLAIN, _hsv(0.085, 0.5, 0.65))
-    m["shade"] = Material(FABRIC, _hsv(0.12, 0.15, 0.9), scale=300, seed=u(0, 100), emission=(0.6, 0.5, 0.35))
-    m["towel"] = pick("fabric")
-    m["curtain"] = pick("curtain")
-    m["prop"] = pick("colour")
+    m["shade"] = Material(FABRIC, _hsv(u(0.05, 0.15), u(0.05, 0.3), 0.9), scale=300, seed=u(0, 100),
+                          emission=(0.6, 0.5, 0.35))
+    m["towel"] = fabric()
+    m["curtain"] = fabric((15, 30))
+    for k in range(N_PROP_MATERIALS):  # vases, bottles, bowls, plant pots: the family's own small things
+        m[f"prop{k}"] = Material(PAINT, _hsv(u(0, 1), u(0.1, 0.8), u(0.2, 0.95)), seed=u(0, 100))
+    m["leaves"] = Material(FABRIC, _hsv(u(0.22, 0.4), u(0.4, 0.8), u(0.25, 0.6)), scale=u(60, 120), seed=u(0, 100))
     m["paper"] = Material(PLAIN, (0.85, 0.85, 0.82))
     m["mirror"] = Material(PLAIN, (0.55, 0.6, 0.62), emission=(0.05, 0.05, 0.06))
     for k in range(3):
-        m[f"picture{k}"] = pick("picture")
+        m[f"picture{k}"] = Material(PICTURE, _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)),
+                                    _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)), u(2, 7), u(0, 100))
     return m
 
 
@@ -462,7 +467,7 @@ def b_floorlamp(dim, mats):
 def b_dresser(dim, mats):
     objs = b_boxlike("dresser", "wood")(dim, mats)
     w, d, h = dim
-    objs.append(Obj(ID["otherprop"], [(_cyl(w / 4, 0, h, 0.06, 0.25), "prop")]))
+    objs.append(Obj(ID["otherprop"], [(_cyl(w / 4, 0, h, 0.06, 0.25), "prop0")]))
     return objs
 
 
@@ -470,7 +475,7 @@ def b_shelves(dim, mats):
     w, d, h = dim
     objs = [Obj(ID["shelves"], [(_bx(0, 0, z, w, d, 0.025), "wood") for z in np.linspace(0, h, 3)])]
     objs.append(Obj(ID["box"], [(_bx(-w / 4, 0, h / 2 + 0.025, 0.3, d * 0.8, min(0.25, h / 2 - 0.05)), "cardboard")]))
-    objs.append(Obj(ID["otherprop"], [(_cyl(w / 4, 0, 0.025, 0.05, 0.18), "prop")]))
+    objs.append(Obj(ID["otherprop"], [(_cyl(w / 4, 0, 0.025, 0.05, 0.18), "prop0")]))
     objs.append(Obj(ID["books"], [(_bx(w / 4, 0, h + 0.025, 0.3, d * 0.8, 0.22), "books")]))
     return objs
 
@@ -489,9 +494,28 @@ def b_floormat(dim, mats):
 def b_coffee_table(dim, mats):
     objs = b_table(dim, {})
     w, d, h = dim
-    objs.append(Obj(ID["otherprop"], [(_cyl(w / 5, 0, h, 0.05, 0.22), "prop")]))
+    objs.append(Obj(ID["otherprop"], [(_cyl(w / 5, 0, h, 0.05, 0.22), "prop0")]))
     objs.append(Obj(ID["paper"], [(_bx(-w / 5, 0, h, 0.3, 0.22, 0.005), "paper")]))
     return objs
+
+
+def b_plant(dim, mats):
+    """A potted plant on the floor: pot and foliage are one small thing (NYU40 otherprop, as in Hypersim)."""
+    w, d, h = dim
+    return [Obj(ID["otherprop"], [(_cyl(0, 0, 0, w * 0.3, h * 0.3), "prop1"),
+                                  (_cyl(0, 0, h * 0.3, w * 0.5, h * 0.7, 8), "leaves")])]
+
+
+def b_side_table(dim, mats):
+    return b_table(dim, {"top": "wood2", "legs": "wood2"})
+
+
+def b_lounge_chair(dim, mats):
+    w, d, h = dim
+    parts = [(_bx(0, 0.03, 0.1, w - 0.1, d - 0.1, 0.32), "fabric2"), (_bx(0, -d / 2 + 0.08, 0.1, w, 0.16, h - 0.1), "fabric2"),
+             (_bx(-w / 2 + 0.05, 0.03, 0.1, 0.1, d - 0.1, 0.52), "fabric2"), (_bx(w / 2 - 0.05, 0.03, 0.1, 0.1, d - 0.1, 0.52), "fabric2")]
+    parts += [(leg, "wood") for leg in _legs(w, d, 0.1, 0.04, 0.04)]
+    return [Obj(ID["chair"], parts)]
 
 
 def b_work_desk(dim, mats):
@@ -554,6 +578,9 @@ CATALOGUE = {
     "floorlamp": (b_floorlamp, "corner", ((0.4, 0.4, 1.5), (0.45, 0.45, 1.8))),
     "boxes": (b_boxes, "wall", ((0.35, 0.3, 0.25), (0.6, 0.45, 0.45))),
     "floormat": (b_floormat, "floor", ((1.2, 0.8, 0.0), (2.4, 1.7, 0.0))),
+    "plant": (b_plant, "corner", ((0.35, 0.35, 0.6), (0.6, 0.6, 1.5))),
+    "side_table": (b_side_table, "wall", ((0.4, 0.4, 0.5), (0.6, 0.55, 0.7))),
+    "lounge_chair": (b_lounge_chair, "free", ((0.7, 0.7, 0.8), (0.85, 0.85, 0.95))),
     "toilet": (b_toilet, "wall", ((0.38, 0.65, 0.78), (0.42, 0.72, 0.82))),
     "bathtub": (b_bathtub, "wall", ((1.5, 0.7, 0.55), (1.8, 0.8, 0.6))),
     "vanity": (b_vanity, "wall", ((0.6, 0.45, 0.85), (1.2, 0.55, 0.9))),
@@ -571,28 +598,38 @@ MOUNT_Z = {"picture": (1.3, 1.6), "whiteboard": (0.9, 1.0), "mirror": (1.15, 1.3
 # room type -> [(kind, min count, max count, probability the family has it)]
 ROOMS = {
     "office": [("desk", 1, 3, 1.0), ("chair", 0, 0, 1.0), ("bookshelf", 1, 2, 0.9), ("cabinet", 1, 2, 0.8),
-               ("whiteboard", 1, 1, 0.6), ("picture", 1, 2, 0.7), ("boxes", 1, 2, 0.6), ("floorlamp", 1, 1, 0.4),
-               ("shelves", 1, 1, 0.5), ("table", 1, 1, 0.4), ("otherfurniture", 1, 1, 0.4), ("floormat", 1, 1, 0.3)],
+               ("whiteboard", 1, 1, 0.6), ("picture", 1, 2, 0.7), ("boxes", 1, 2, 0.6), ("floorlamp", 1, 1, 0.5),
+               ("shelves", 1, 1, 0.5), ("table", 1, 1, 0.4), ("otherfurniture", 1, 1, 0.4), ("floormat", 1, 1, 0.3),
+               ("plant", 1, 2, 0.6), ("lounge_chair", 1, 1, 0.3)],
     "bedroom": [("bed", 1, 1, 1.0), ("nightstand", 1, 2, 1.0), ("dresser", 1, 1, 0.8), ("wardrobe", 1, 1, 0.6),
-                ("picture", 1, 3, 0.9), ("floormat", 1, 1, 0.6), ("mirror", 1, 1, 0.5), ("desk", 1, 1, 0.3),
-                ("chair", 0, 0, 1.0), ("boxes", 1, 1, 0.3), ("floorlamp", 1, 1, 0.3), ("shelves", 1, 1, 0.4)],
-    "living room": [("sofa", 1, 1, 1.0), ("coffee_table", 1, 1, 0.9), ("tvstand", 1, 1, 0.8), ("armchair", 1, 2, 0.6),
+                ("picture", 1, 3, 0.9), ("floormat", 1, 1, 0.6), ("mirror", 1, 1, 0.5), ("desk", 1, 1, 0.4),
+                ("chair", 0, 0, 1.0), ("boxes", 1, 1, 0.3), ("floorlamp", 1, 1, 0.4), ("shelves", 1, 1, 0.4),
+                ("plant", 1, 1, 0.5), ("lounge_chair", 1, 1, 0.5)],
+    "living room": [("sofa", 1, 1, 1.0), ("coffee_table", 1, 1, 0.9), ("tvstand", 1, 1, 0.8), ("armchair", 1, 2, 0.5),
                     ("bookshelf", 1, 1, 0.6), ("picture", 1, 3, 0.9), ("floormat", 1, 1, 0.8), ("floorlamp", 1, 2, 0.8),
-                    ("cabinet", 1, 1, 0.4), ("shelves", 1, 1, 0.4), ("otherfurniture", 1, 1, 0.4)],
+                    ("cabinet", 1, 1, 0.4), ("shelves", 1, 1, 0.4), ("otherfurniture", 1, 1, 0.4),
+                    ("plant", 1, 2, 0.7), ("side_table", 1, 2, 0.7), ("lounge_chair", 1, 2, 0.7)],
     "kitchen": [("counter", 1, 2, 1.0), ("kitchen_sink", 1, 1, 1.0), ("fridge", 1, 1, 1.0), ("upper_cabinet", 1, 2, 0.8),
-                ("table", 1, 1, 0.6), ("chair", 0, 0, 1.0), ("picture", 1, 1, 0.4), ("boxes", 1, 1, 0.3),
-                ("shelves", 1, 1, 0.4), ("cabinet", 1, 1, 0.5), ("floormat", 1, 1, 0.3)],
+                ("table", 1, 1, 0.7), ("chair", 0, 0, 1.0), ("picture", 1, 1, 0.4), ("boxes", 1, 1, 0.3),
+                ("shelves", 1, 1, 0.4), ("cabinet", 1, 1, 0.5), ("floormat", 1, 1, 0.3), ("plant", 1, 1, 0.4)],
     "bathroom": [("toilet", 1, 1, 1.0), ("vanity", 1, 1, 1.0), ("mirror", 1, 1, 1.0), ("bathtub", 1, 1, 0.7),
                  ("towel", 1, 2, 0.9), ("floormat", 1, 1, 0.6), ("cabinet", 1, 1, 0.5), ("shelves", 1, 1, 0.5),
-                 ("picture", 1, 1, 0.3)],
+                 ("picture", 1, 1, 0.3), ("plant", 1, 1, 0.4)],
     "classroom": [("student_desk", 4, 9, 1.0), ("chair", 0, 0, 1.0), ("whiteboard", 1, 1, 1.0), ("desk", 1, 1, 1.0),
-                  ("bookshelf", 1, 2, 0.6), ("cabinet", 1, 2, 0.6), ("picture", 1, 2, 0.5), ("boxes", 1, 1, 0.4)],
+                  ("bookshelf", 1, 2, 0.6), ("cabinet", 1, 2, 0.6), ("picture", 1, 2, 0.5), ("boxes", 1, 1, 0.4),
+                  ("plant", 1, 1, 0.4)],
     "dining room": [("dining_table", 1, 1, 1.0), ("chair", 0, 0, 1.0), ("cabinet", 1, 2, 0.8), ("picture", 1, 3, 0.9),
                     ("floorlamp", 1, 1, 0.5), ("otherfurniture", 1, 1, 0.5), ("floormat", 1, 1, 0.4),
-                    ("shelves", 1, 1, 0.4)],
+                    ("shelves", 1, 1, 0.4), ("plant", 1, 2, 0.6), ("side_table", 1, 1, 0.4)],
     "library": [("bookshelf", 3, 6, 1.0), ("table", 1, 2, 1.0), ("chair", 0, 0, 1.0), ("armchair", 1, 1, 0.5),
-                ("floorlamp", 1, 2, 0.6), ("picture", 1, 1, 0.5), ("floormat", 1, 1, 0.5), ("desk", 1, 1, 0.4)],
+                ("floorlamp", 1, 2, 0.6), ("picture", 1, 1, 0.5), ("floormat", 1, 1, 0.5), ("desk", 1, 1, 0.4),
+                ("plant", 1, 1, 0.5), ("lounge_chair", 1, 2, 0.5)],
 }
+# surfaces that carry small props (vases, bottles, bowls, books, paper) and table lamps: kind -> (props, lamp chance)
+SURFACES = {"table": (2, 0.1), "dining_table": (3, 0.0), "coffee_table": (2, 0.0), "desk": (2, 0.6),
+            "student_desk": (1, 0.0), "nightstand": (1, 0.0), "dresser": (3, 0.5), "counter": (3, 0.1),
+            "cabinet": (2, 0.2), "otherfurniture": (2, 0.5), "side_table": (1, 0.8), "shelves": (2, 0.0),
+            "vanity": (1, 0.0), "bookshelf": (1, 0.0)}
 ROOM_SIZE = {"bathroom": ((2.6, 2.4), (4.0, 3.5)), "kitchen": ((3.2, 3.0), (5.5, 4.5)),
              "classroom": ((5.5, 5.0), (8.0, 7.0)), "library": ((4.5, 4.0), (7.5, 6.5))}
 
@@ -609,6 +646,9 @@ class Family:
     n_lights: int = 2  # ceiling fixtures (dim settings: one)
     window_level: float = 2.0  # daylight through the windows (dim settings: dusk)
     glass: bool = True  # windows glazed (else open: rays escape, invalid pixels)
+    skirting: bool = False  # skirting boards along the walls (NYU40 otherstructure)
+    pendant: float = 0.0  # how far the ceiling lamps hang below the ceiling (m; 0: flush)
+    clutter: float = 0.6  # how many small props stand on the family's surfaces (0..1)
 
 
 def make_family(seed: int, index: int, room: str) -> Family:
@@ -616,7 +656,7 @@ def make_family(seed: int, index: int, room: str) -> Family:
     lo, hi = ROOM_SIZE.get(room, ((3.2, 3.0), (6.0, 5.0)))
     W, D = rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1])
     H = rng.uniform(2.5, 3.2)
-    mats = _family_materials(rng, room, _palette(seed))
+    mats = _family_materials(rng, room)
     temp = float(rng.uniform(0.2, 0.8))  # light colour temperature of the family's fixtures (0 warm .. 1 cool)
     items = []
     pic = 0
@@ -636,15 +676,43 @@ def make_family(seed: int, index: int, room: str) -> Family:
     chair_dims = tuple(float(rng.uniform(a, b)) for a, b in zip(*CATALOGUE["chair"][2]))
     items.append(("chair", chair_dims, {}))  # the family's chair model (the layout decides how many)
     wall_key = ["wall"] * 4
-    if rng.uniform() < 0.5:
-        wall_key[int(rng.integers(4))] = "wall2"
     return Family(index, room, (W, D, H), mats, items, wall_key, temp, int(rng.integers(1, 4)),
-                  float(rng.uniform(1.5, 3.0)), bool(rng.uniform() < 0.85))
+                  float(rng.uniform(1.5, 3.0)), bool(rng.uniform() < 0.85), skirting=bool(rng.uniform() < 0.5),
+                  pendant=float(rng.uniform(0.3, 0.9)) if rng.uniform() < 0.5 else 0.0,
+                  clutter=float(rng.uniform(0.3, 1.0)))
 
 
 # =============================================================================================================
 # layout of one setting
 # =============================================================================================================
+
+def _props_on(it: Item, fam: Family, rng: np.random.Generator) -> list:
+    """Small things on the top of `it` (item-local frame): vases, bottles, bowls (otherprop), a stack of books, a
+    sheet of paper, sometimes a table lamp. How many follows the family's clutter level."""
+    n_max, p_lamp = SURFACES[it.kind]
+    top = it.h
+    objs = []
+    if it.kind not in ("nightstand",) and rng.uniform() < p_lamp:  # nightstands already carry their lamp
+        x, y = rng.uniform(-0.35, 0.35) * it.w, rng.uniform(-0.2, 0.2) * it.d
+        objs.append(Obj(ID["lamp"], [(_cyl(x, y, top, 0.07, 0.03), "metal"), (_cyl(x, y, top + 0.03, 0.012, 0.22), "metal"),
+                                     (_cyl(x, y, top + 0.2, 0.13, 0.18), "shade")]))
+    n = int(rng.binomial(n_max, fam.clutter))
+    for _ in range(n):
+        x, y = rng.uniform(-0.4, 0.4) * it.w, rng.uniform(-0.3, 0.3) * it.d
+        kind = rng.choice(["vase", "bottle", "bowl", "books", "paper"], p=[0.35, 0.25, 0.25, 0.1, 0.05])
+        mat = f"prop{int(rng.integers(N_PROP_MATERIALS))}"
+        if kind == "vase":
+            objs.append(Obj(ID["otherprop"], [(_cyl(x, y, top, rng.uniform(0.05, 0.09), rng.uniform(0.15, 0.35), 10), mat)]))
+        elif kind == "bottle":
+            objs.append(Obj(ID["otherprop"], [(_cyl(x, y, top, 0.035, rng.uniform(0.2, 0.32), 8), mat)]))
+        elif kind == "bowl":
+            objs.append(Obj(ID["otherprop"], [(_cyl(x, y, top, rng.uniform(0.1, 0.16), 0.07, 12), mat)]))
+        elif kind == "books":
+            objs.append(Obj(ID["books"], [(_bx(x, y, top, 0.22, 0.16, rng.uniform(0.06, 0.15)), "books")]))
+        else:
+            objs.append(Obj(ID["paper"], [(_bx(x, y, top, 0.3, 0.22, 0.005), "paper")]))
+    return objs
+
 
 def _rot(yaw: float) -> np.ndarray:
     c, s = math.cos(yaw), math.sin(yaw)
@@ -837,6 +905,10 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
             it.objs = CATALOGUE[kind][0](dims, {}) if kind != "picture" else w_picture(dims, {}, extra["mat"])
             items.append(it)
 
+    for it in items:  # small props and table lamps on the surfaces (the clutter of real rooms)
+        if it.kind in SURFACES:
+            it.objs += _props_on(it, fam, rng)
+
     # chairs: in front of desks, around tables
     cw, cd, ch = chair_dims
     for anchor, mode in chair_anchors:
@@ -873,8 +945,9 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
         power = lrng.uniform(4.0, 6.0) * (W * D / 20.0) ** 0.5 / fam.n_lights ** 0.5
         if k < n_lights:
             lights.append((pos, rgb * level * power))
-        items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2, 0.18, 0.08), "shade"),
-                                                          (_cyl(0, 0, -0.12, 0.01, 0.12), "metal")])],
+        drop = fam.pendant  # a pendant hangs on a cord into the view; a flush fixture stays at the ceiling
+        items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2 - drop, 0.2, 0.14), "shade"),
+                                                          (_cyl(0, 0, -0.06 - drop, 0.01, 0.06 + drop), "metal")])],
                           0.3, 0.3, 0.2, float(pos[0]), float(pos[1]), 0.0, H))
     ambient = rgb * (0.22 if not dim else 0.015)
     window_emission = np.array([0.9, 1.0, 1.2]) * (fam.window_level if not dim else 0.04)
@@ -961,8 +1034,12 @@ def build_mesh(fam: Family, lay: Layout, seed: int, setting_index: int) -> Scene
         T[:3, :3] = _rot(w * math.pi / 2)
         T[:2, 3] = o
         holes = [(a, b, z0, z1) for (ww, a, b, z0, z1, k) in lay.openings if ww == w]
-        parts = [(_box((s0, -0.12, z0), (s1, 0.0, z1)), fam.wall_key[w]) for s0, s1, z0, z1 in _wall_pieces(L, H, holes)]
+        pieces = _wall_pieces(L, H, holes)
+        parts = [(_box((s0, -0.12, z0), (s1, 0.0, z1)), fam.wall_key[w]) for s0, s1, z0, z1 in pieces]
         add_obj(ID["wall"], parts, T, f"wall{w}")
+        if fam.skirting:  # skirting boards where the wall meets the floor
+            add_obj(ID["otherstructure"], [(_box((s0, 0.0, 0.0), (s1, 0.015, 0.1)), "skirting")
+                                           for s0, s1, z0, z1 in pieces if z0 == 0.0], T, "skirting")
         for (ww, a, b, z0, z1, k) in lay.openings:
             if ww != w:
                 continue
@@ -1028,18 +1105,24 @@ def look_rotation(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
 
 
 def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int) -> list:
-    """1-3 scenes; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres)."""
+    """1-2 scenes; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres).
+
+    As in Hypersim, the cameras of a setting dwell on one part of the room: a piece of furniture and what stands
+    within 2 m of it. Each scene starts 1.8-4 m away from that part, walks 0.3-1.5 m through free floor, and looks
+    at it with a slow wander of its gaze; the height it looks at (0.4-2.1 m) is the scene's own, so some scenes
+    show the ceiling and others the floor in front of the furniture.
+    """
     rng = np.random.default_rng([seed, 32452843, setting_index])
-    n_scenes = int(min(rng.integers(1, 4) if n_frames < 24 else rng.integers(2, 4), max(1, n_frames // 3)))
+    n_scenes = 1 if n_frames < 24 else int(rng.integers(1, 3))
     counts = [n_frames // n_scenes + (1 if k < n_frames % n_scenes else 0) for k in range(n_scenes)]
     res = 0.1
     nx, ny = int(lay.W / res), int(lay.D / res)
     gx, gy = (np.arange(nx) + 0.5) * res, (np.arange(ny) + 0.5) * res
     X, Y = np.meshgrid(gx, gy, indexing="ij")
-    m = 0.8 if min(lay.W, lay.D) > 3.6 else 0.5
+    m = 0.6 if min(lay.W, lay.D) > 3.6 else 0.45
     free = (X > m) & (X < lay.W - m) & (Y > m) & (Y < lay.D - m)
     for r in lay.rects:
-        free &= ~((X > r[0] - 0.3) & (X < r[2] + 0.3) & (Y > r[1] - 0.3) & (Y < r[3] + 0.3))
+        free &= ~((X > r[0] - 0.25) & (X < r[2] + 0.25) & (Y > r[1] - 0.25) & (Y < r[3] + 0.25))
     if not free.any():
         free = (X > 0.4) & (X < lay.W - 0.4) & (Y > 0.4) & (Y < lay.D - 0.4)
 
@@ -1047,61 +1130,55 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int)
         i, j = int(p[0] / res), int(p[1] / res)
         return 0 <= i < nx and 0 <= j < ny and bool(free[i, j])
 
-    interest = [np.array([it.x, it.y, it.z0 + max(0.3, it.h * 0.6)]) for it in lay.items if it.kind != "ceiling_lamp"]
-    interest.append(np.array([lay.W / 2, lay.D / 2, 0.8]))
+    # the part of the room the cameras dwell on: a piece of furniture (larger ones more often) and its neighbours
+    things = [it for it in lay.items if it.kind not in ("ceiling_lamp", "floormat")]
+    weight = np.array([max(0.1, it.w * it.d) for it in things]) ** 0.5
+    anchor = things[int(rng.choice(len(things), p=weight / weight.sum()))]
+    near = np.array([[it.x, it.y] for it in things if math.hypot(it.x - anchor.x, it.y - anchor.y) < 2.0])
+    focus = 0.5 * (near.mean(axis=0) + np.array([anchor.x, anchor.y]))
     scenes = []
     fi, fj = np.nonzero(free)
+    dist = np.hypot(gx[fi] - focus[0], gy[fj] - focus[1])
     for n in counts:
-        k = int(rng.integers(len(fi)))
+        ring = np.flatnonzero((dist > 1.8) & (dist < 4.0))
+        k = int(rng.choice(ring)) if len(ring) else int(np.argmax(dist))
         p = np.array([gx[fi[k]], gy[fj[k]]]) + rng.uniform(-0.04, 0.04, 2)
-        # look towards the far side of the room: choose targets far from the start
-        far = [q for q in interest if np.linalg.norm(q[:2] - p) > 1.6] or interest
-        ang = lambda q: math.atan2(q[1] - p[1], q[0] - p[0])
-        wrap = lambda x: (x + math.pi) % (2 * math.pi) - math.pi
-        # three look-at targets on room content, each 50-150 degrees from the previous (as seen from the start):
-        # every scene pans widely across the room, so frames of one scene differ
-        targets = [far[int(rng.integers(len(far)))]]
-        sign = rng.choice([-1.0, 1.0])
-        for _k in range(N_PANS):
-            prev = ang(targets[-1])
-            sep = [q for q in interest if np.linalg.norm(q[:2] - p) > 1.6
-                   and math.radians(60) < sign * wrap(ang(q) - prev) < math.radians(140)]
-            targets.append(sep[int(rng.integers(len(sep)))] if sep else
-                           np.r_[p + 2.0 * np.array([math.cos(prev + sign * 1.6), math.sin(prev + sign * 1.6)]), 0.8])
-        heading = ang(targets[0]) + rng.choice([-1, 1]) * math.pi / 2
-        length = rng.uniform(1.5, 4.5)
-        step = length / max(1, n - 1)
+        # a short walk through free floor, roughly across the line of sight
+        sight = math.atan2(focus[1] - p[1], focus[0] - p[0])
+        heading = sight + rng.choice([-1, 1]) * math.pi / 2 + rng.normal(0, 0.4)
+        step = rng.uniform(0.3, 1.5) / max(1, n - 1)
         pts = [p.copy()]
-        sub = 4
-        for _s in range((n - 1) * sub):
-            heading += rng.normal(0, 0.12)
+        for _s in range(n - 1):
+            heading += rng.normal(0, 0.1)
             for _t in range(16):
-                q = pts[-1] + step / sub * np.array([math.cos(heading), math.sin(heading)])
+                q = pts[-1] + step * np.array([math.cos(heading), math.sin(heading)])
                 if is_free(q):
                     break
                 heading += rng.uniform(0.5, 2.5)
             else:
                 q = pts[-1]
             pts.append(q)
-        pts = np.array(pts[::sub])[:n]
-        h0 = rng.uniform(1.0, 1.8)
-        eyes = np.c_[pts, np.clip(h0 + 0.03 * np.sin(np.linspace(0, 3, n) + rng.uniform(0, 6)), 1.0, 1.8)]
-        # yaw and pitch interpolated through the targets (yaw along the panning direction)
-        yaws = [ang(targets[0])]
-        for q in targets[1:]:
-            yaws.append(yaws[-1] + wrap(ang(q) - ang(targets[len(yaws) - 1])))
-        pitches = [math.atan2(q[2] - h0, max(0.5, np.linalg.norm(q[:2] - p))) for q in targets]
-        tt = np.linspace(0, N_PANS, n) if n > 1 else np.zeros(1)
-        yaw = np.interp(tt, np.arange(N_PANS + 1), yaws) + rng.normal(0, 0.03, n)
-        pitch = np.clip(np.interp(tt, np.arange(N_PANS + 1), pitches) + rng.normal(0, 0.02, n), math.radians(-22), math.radians(4))
-        Rs, looks = [], []
-        for e, yw, pt, tgt in zip(eyes, yaw, pitch, np.interp(tt, np.arange(N_PANS + 1), [np.linalg.norm(q[:2] - p) for q in targets])):
-            d = np.array([math.cos(yw) * math.cos(pt), math.sin(yw) * math.cos(pt), math.sin(pt)])
-            Rs.append(look_rotation(e, e + d))
-            looks.append(e + d * max(1.0, float(tgt)))
-        looks = np.array(looks)
-        scenes.append((eyes, np.stack(Rs), looks))
+        pts = np.array(pts)
+        h0 = rng.uniform(1.2, 1.7)
+        eyes = np.c_[pts, np.clip(h0 + 0.02 * np.sin(np.linspace(0, 3, n) + rng.uniform(0, 6)), 1.0, 1.8)]
+        # the gaze: the focus plus a slow wander (two sines per axis) at the scene's own height
+        t = np.linspace(0, 1, n)
+        wander = np.stack([a * np.sin(2 * math.pi * f * t + ph) for a, f, ph in
+                           zip(rng.uniform(0.3, 0.8, 3) * np.array([1, 1, 0.4]), rng.uniform(0.3, 1.0, 3),
+                               rng.uniform(0, 2 * math.pi, 3))], axis=1)
+        looks = np.c_[np.broadcast_to(focus, (n, 2)), np.full(n, rng.uniform(0.4, 2.1))] + wander
+        reach = np.maximum(np.linalg.norm(looks[:, :2] - eyes[:, :2], axis=1), 0.5)  # pitch within -25..+22 degrees
+        looks[:, 2] = eyes[:, 2] + np.clip(looks[:, 2] - eyes[:, 2], reach * math.tan(math.radians(-25)),
+                                           reach * math.tan(math.radians(22)))
+        Rs = np.stack([look_rotation(e, q) for e, q in zip(eyes, looks)])
+        scenes.append((eyes, Rs, looks))
     return scenes
+
+
+def scene_exposures(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Exposure of each frame of one scene: one level per scene (x0.7-1.3) and a 2% flicker, steady along the
+    trajectory as in Hypersim's renders."""
+    return np.exp(rng.uniform(np.log(0.7), np.log(1.3)) + rng.normal(0, 0.02, n))
 
 
 # =============================================================================================================
@@ -1217,15 +1294,19 @@ def render_frame(r: Renderer, rays_cam: np.ndarray, eye: np.ndarray, R: np.ndarr
 def plan(study) -> list[dict]:
     """One dict per setting: name, index, family, room type, split, dim, tilt-shift, meters_per_asset_unit, frames."""
     ds = study.dataset
-    n_test, n_train = int(ds.test_settings), int(ds.train_settings)
-    fs = max(1, int(ds.family_size))
+    n_train, fs = int(ds.train_settings), max(1, int(ds.family_size))
+    siblings = int(getattr(ds, "test_siblings", 0))
     settings = []
-    fam = -1
-    for split, n, frames in (("test", n_test, ds.frames_per_setting), ("train", n_train, ds.train_frames_per_setting)):
-        for k in range(n):
-            if k % fs == 0:
-                fam += 1
-            settings.append({"split": split, "family": fam, "member": k % fs, "frames": int(frames)})
+    # test: one setting per family (the `paper` protocol's places); the first `test_siblings` families also get a
+    # second setting (same furniture and materials, another layout: the `siblings` protocol)
+    for fam in range(int(ds.test_settings)):
+        for member in range(2 if fam < siblings else 1):
+            settings.append({"split": "test", "family": fam, "member": member, "frames": int(ds.frames_per_setting)})
+    fam = int(ds.test_settings) - 1
+    for k in range(n_train):  # training: families of `family_size` settings
+        if k % fs == 0:
+            fam += 1
+        settings.append({"split": "train", "family": fam, "member": k % fs, "frames": int(ds.train_frames_per_setting)})
     total = len(settings)
     rng = np.random.default_rng([study.seed, 2718])
     n_fam = fam + 1
@@ -1281,11 +1362,12 @@ def build_setting(s: dict, seed: int):
     return fam, lay, mesh, scenes, r
 
 
-def refine_views(r: "Renderer", scenes: list, min_depth: float = 1.8) -> list:
-    """Turn a frame that faces a wall or furniture at arm's length towards open room (probe: 12x9 rays)."""
+def refine_views(r: "Renderer", scenes: list, min_depth: float = 1.2) -> list:
+    """Turn a frame that faces a wall or furniture at arm's length up to 40 degrees towards open room (probe: 12x9
+    rays); the gaze stays on the part of the room the scene dwells on."""
     probe = Camera.canonical(12, 9).rays(9, 12).reshape(-1, 3)
     probe = probe / np.linalg.norm(probe, axis=1, keepdims=True)
-    offsets = [0.0] + [sgn * k * math.radians(20) for k in range(1, 9) for sgn in (1, -1)]
+    offsets = [0.0] + [sgn * k * math.radians(20) for k in range(1, 3) for sgn in (1, -1)]
     out = []
     for eyes, Rs, looks in scenes:
         Rs, looks = Rs.copy(), looks.copy()
@@ -1359,9 +1441,9 @@ def render_setting(s: dict, study_key: dict, width: int, height: int, seed: int,
         pdir = out / "images" / f"scene_{cname}_final_preview"
         for d in (fdir, gdir, pdir):
             d.mkdir(parents=True, exist_ok=True)
+        exposures = scene_exposures(rng, len(eyes))
         for i, (eye, R) in enumerate(zip(eyes, Rs)):
-            exposure = float(np.exp(rng.uniform(np.log(0.7), np.log(1.3))))
-            fo = render_frame(r, rays, eye, R, exposure, timing)
+            fo = render_frame(r, rays, eye, R, float(exposures[i]), timing)
             tw = time.perf_counter()
             stem = f"frame.{i:04d}"
             color16 = fo.color.astype(np.float16)
@@ -1503,7 +1585,7 @@ def _write_root(out_dir: Path, study, settings: list, infos: dict, W: int, H: in
     ds = study.dataset
     meta = {"generator": "monolib.synth", "version": FORMAT_VERSION, "seed": int(study.seed),
             "dataset": {k: getattr(ds, k) for k in ("width", "height", "train_settings", "test_settings",
-                                                    "family_size", "frames_per_setting", "train_frames_per_setting",
+                                                    "test_siblings", "family_size", "frames_per_setting", "train_frames_per_setting",
                                                     "dim_fraction", "tilt_shift_settings")},
             "settings": [{k: infos[s["name"]].get(k) for k in
                           ("name", "index", "family", "member", "room_type", "scene_type", "split", "dim",
@@ -1521,7 +1603,7 @@ def benchmark(width: int = 256, height: int = 192, frames: int = 20, seed: int =
     import tempfile
     from types import SimpleNamespace
 
-    ds = SimpleNamespace(width=width, height=height, train_settings=0, test_settings=1, family_size=1,
+    ds = SimpleNamespace(width=width, height=height, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
                          frames_per_setting=frames, train_frames_per_setting=frames, dim_fraction=0.0,
                          tilt_shift_settings=0, workers=1)
     study = SimpleNamespace(seed=seed, dataset=ds)

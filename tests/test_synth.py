@@ -62,8 +62,9 @@ def test_plan_families_splits_and_names(smoke_study):
     for study in (smoke_study, q):
         plan = synth.plan(study)
         ds = study.dataset
-        assert len(plan) == ds.test_settings + ds.train_settings
-        assert all(s["split"] == "test" for s in plan[: ds.test_settings])
+        n_test = ds.test_settings + ds.test_siblings
+        assert len(plan) == n_test + ds.train_settings
+        assert all(s["split"] == "test" for s in plan[:n_test])
         fam_split = {}
         for s in plan:
             assert s["name"] == f"ai_{900 + s['family']:03d}_{s['member'] + 1:03d}"
@@ -71,9 +72,36 @@ def test_plan_families_splits_and_names(smoke_study):
         assert sum(s["dim"] for s in plan) >= ds.dim_fraction * len(plan)
         assert sum(s["tilt_shift"] for s in plan) >= ds.tilt_shift_settings
         assert {s["meters_per_asset_unit"] for s in plan} == {0.01, 0.0254}
-    test = [s for s in synth.plan(q) if s["split"] == "test"]
-    fams = [s["family"] for s in test]
-    assert all(fams.count(f) >= 2 for f in fams)  # every test setting has a sibling
+        # test: `test_settings` families, the first `test_siblings` of them with exactly two settings
+        test = [s for s in plan if s["split"] == "test"]
+        members = {}
+        for s in test:
+            members.setdefault(s["family"], []).append(s["member"])
+        assert len(members) == ds.test_settings
+        assert [len(m) for m in members.values()] == [2] * ds.test_siblings + [1] * (ds.test_settings - ds.test_siblings)
+        train = [s for s in plan if s["split"] == "train"]
+        sizes = {}
+        for s in train:
+            sizes[s["family"]] = sizes.get(s["family"], 0) + 1
+        assert max(sizes.values()) == ds.family_size  # training settings have siblings too
+
+
+def test_siblings_share_materials_and_catalogue_not_layout(smoke_study):
+    plan = synth.plan(smoke_study)
+    a, b = [s for s in plan if s["split"] == "test" and s["family"] == 0]
+    fa, fb = synth.make_family(0, a["family"], a["room_type"]), synth.make_family(0, b["family"], b["room_type"])
+    assert fa.materials == fb.materials and fa.items == fb.items
+    la, lb = synth.make_layout(fa, 0, a["index"], a["dim"]), synth.make_layout(fb, 0, b["index"], b["dim"])
+    assert [(i.x, i.y) for i in la.items] != [(i.x, i.y) for i in lb.items]
+    other = [s for s in plan if s["family"] != 0][0]
+    fo = synth.make_family(0, other["family"], other["room_type"])
+    assert fo.materials["wall"] != fa.materials["wall"] and fo.materials["floor"] != fa.materials["floor"]
+
+
+def test_scene_exposure_is_steady_along_a_trajectory():
+    e = synth.scene_exposures(np.random.default_rng(0), 40)
+    assert 0.7 * 0.9 < e.min() and e.max() < 1.3 * 1.1
+    assert np.std(np.log(e)) < 0.05  # one level per scene, a small flicker
 
 
 def test_files_dtypes_shapes_and_labels(smoke_dataset, smoke_study):
@@ -137,7 +165,7 @@ def test_camera_poses(smoke_dataset):
             assert list(idx) == list(range(len(t)))
             np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
             np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
-            assert (R[:, 2, 1] > 0.9).all()  # camera y (up) is about world +z: small pitch, no roll
+            assert (R[:, 2, 1] > 0.9).all()  # camera y (up) is about world +z: pitch within 25 degrees, no roll
             assert (R[:, 2, 0] == pytest.approx(0.0, abs=1e-9))  # camera x stays horizontal
             h = t[:, 2] * mpau
             assert ((h >= 0.99) & (h <= 1.81)).all()
@@ -159,7 +187,7 @@ def test_split_csv_matches_frames_and_metadata(smoke_dataset, smoke_study):
     for r in rows:
         assert split.setdefault(r["scene_name"], r["split_partition_name"]) == r["split_partition_name"]
     ds = smoke_study.dataset
-    assert sorted(split.values()).count("test") == ds.test_settings
+    assert sorted(split.values()).count("test") == ds.test_settings + ds.test_siblings
     assert sorted(split.values()).count("train") == ds.train_settings
     for s in set(split):
         n = sum(1 for r in rows if r["scene_name"] == s)
