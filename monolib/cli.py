@@ -1,5 +1,5 @@
 """The `monolib` command: `monolib study STUDY`, `monolib synth STUDY --out DIR`, `monolib perception STUDY`,
-`monolib index STUDY --out DB`, `monolib localize IMAGE... --db DB`, `monolib bench`."""
+`monolib fidelity STUDY`, `monolib index STUDY --out DB`, `monolib localize IMAGE... --db DB`, `monolib bench`."""
 from __future__ import annotations
 
 import argparse
@@ -22,6 +22,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("study")
     p.add_argument("--out", required=True, help="output folder")
     p = sub.add_parser("perception", help="train, evaluate and cache the perception models of a study")
+    p.add_argument("study")
+    p = sub.add_parser("fidelity", help="compare a study's ground-truth scene graphs with real Hypersim (fidelity.md)")
     p.add_argument("study")
     p = sub.add_parser("index", help="store the embeddings of a study's test frames as a localization database")
     p.add_argument("study")
@@ -60,6 +62,13 @@ def main(argv: list[str] | None = None) -> int:
             print(perception.run(spec).to_string(index=False))
             perception.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
             print(f"figures: {paths.figures_dir(spec.name)}")
+        elif args.command == "fidelity":
+            from monolib import fidelity
+
+            spec = load_study(args.study)
+            _, table = fidelity.write(spec, fidelity.study_statistics(spec))
+            print(table.read_text(), end="")
+            print(f"written: {table} and fidelity.csv")
         elif args.command == "index":
             from monolib import localize
 
