@@ -1,8 +1,10 @@
 """One cell of the ablation grid: (method, scenario, threshold, seed) -> train, embed, retrieve, write files.
 
 `notebooks/ablation_cell.ipynb` calls `run_cell`; so do the tests. A cell writes into its folder:
-`cell.json` (written last: its presence means the cell is complete), `rankings.csv` (top 10 per query),
-`protocol.csv` (which test frames were queries / positives), `embeddings.npy` and, for trained methods,
+`cell.json` (written last: its presence means the cell is complete; ``metrics`` per protocol), `rankings.csv` (top
+10 per query and protocol), `protocol.csv` (which test frames were queries / positives in each protocol), both with
+a leading ``protocol`` column (``paper``, ``siblings``: `monolib.retrieval.evaluate_protocols`, one trained encoder
+evaluated on both), `embeddings.npy` (every test frame) and, for trained methods,
 `history.csv` and `model.pt` (the encoder's weights, used by `monolib index`). A cell whose graphs equal those of
 a smaller threshold (`monolib.study.same_graphs`) is a copy of that cell's files, and its `cell.json` says so
 (`same_graphs_as`).
@@ -46,8 +48,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     kind = methods.kind(method, study)
     if kind == "graph" and scenario not in study.scenarios:
         raise StudyError(f"scenario {scenario!r}: not in {study.path} (scenarios: {', '.join(study.scenarios)})")
-    if not threshold > 0:
-        raise StudyError(f"threshold {threshold}: expected a distance in metres > 0 or inf")
+    if not threshold >= 0:
+        raise StudyError(f"threshold {threshold}: expected 0 (no edges), a distance in metres > 0, or inf")
     folder = cell_folder(study, method, scenario, threshold, seed, out_dir)
     if is_complete(folder) and not force:
         log.info("cell %s already complete", folder)
@@ -89,7 +91,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     timings["embed_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    metrics, rankings, draw = retrieval.evaluate(emb, frames, settings, study.protocol, seed)
+    evaluated = retrieval.evaluate_protocols(emb, frames, settings, study.protocol, seed)
     timings["retrieval_s"] = time.perf_counter() - t
 
     sc = study.scenarios.get(scenario)
@@ -99,12 +101,15 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         "seed": int(seed), "study": study.name, "study_file": study.path,
         "scenario_label": sc.label if sc else "RGB only (no graph)",
         "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
-        "protocol": {"settings": study.protocol.settings, "frames": study.protocol.frames,
-                     "queries": study.protocol.queries, "positives": study.protocol.positives},
-        "metrics": metrics, "timings": timings, **extra,
+        "protocol": {"settings": study.protocol.settings, "siblings": study.protocol.siblings,
+                     "frames": study.protocol.frames, "queries": study.protocol.queries,
+                     "positives": study.protocol.positives},
+        "protocols": {name: {"settings": r.settings, "draw_seed": r.seed} for name, r in evaluated.items()},
+        "metrics": {name: r.metrics for name, r in evaluated.items()}, "timings": timings, **extra,
     }
-    write_text(folder / "rankings.csv", rankings.to_csv(index=False))
-    write_text(folder / "protocol.csv", draw.table().to_csv(index=False))
+    write_text(folder / "rankings.csv", pd.concat([r.rankings for r in evaluated.values()]).to_csv(index=False))
+    write_text(folder / "protocol.csv",
+               pd.concat([r.protocol_table() for r in evaluated.values()]).to_csv(index=False))
     with atomic_path(folder / "embeddings.npy") as tmp:
         with open(tmp, "wb") as f:
             np.save(f, np.asarray(emb, dtype=np.float32))
@@ -115,6 +120,20 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
             torch.save(state, tmp)
     write_json(folder / "cell.json", record)  # last: marks the cell complete
     return record
+
+
+def metrics_of(record: dict, protocol: str = "paper") -> dict[str, float]:
+    """A cell's metrics for one protocol; a cell written before the protocols were two (flat ``metrics``) holds
+    the ``paper`` protocol only."""
+    m = record["metrics"]
+    if any(isinstance(v, dict) for v in m.values()):
+        if protocol not in m:
+            raise KeyError(f"cell {record.get('method')}/{record.get('scenario')}: no {protocol!r} protocol "
+                           f"(has {', '.join(m)})")
+        return m[protocol]
+    if protocol != "paper":
+        raise KeyError(f"cell {record.get('method')}/{record.get('scenario')}: only the 'paper' protocol")
+    return m
 
 
 def copy_cell(source: Path, folder: Path, threshold: float, source_name: str) -> dict:

@@ -45,21 +45,24 @@ class Selection:
 def select_frames(study: Study, ds: HypersimDataset, val_settings: int) -> Selection:
     """Deterministic frame selection.
 
-    Test: the first `protocol.settings` test settings (sorted by name) holding at least `protocol.frames` frames,
-    `protocol.frames` frames each, evenly spread over the setting's scenes. Train: every other training setting
-    (`train_frames_per_setting` frames each, evenly spread); the last `val_settings` of them are validation.
-    Real Hypersim's 'val' partition counts as training data here (the study's validation is taken from it).
+    Test: the union of the protocols' settings (`monolib.retrieval.protocol_settings`: ``paper``, one setting of
+    each of `protocol.settings` families, and ``siblings``, both settings of `protocol.siblings` families), chosen
+    among the test settings holding at least `protocol.frames` frames, sorted by name, `protocol.frames` frames each,
+    evenly spread over the setting's scenes. Train: every training setting (`train_frames_per_setting` frames each,
+    evenly spread); the last `val_settings` of them are validation. `dataset.max_settings` limits the training
+    settings. Real Hypersim's 'val' partition counts as training data here (the study's validation is taken from it).
     """
+    from monolib.retrieval import protocol_settings
+
     pr = study.protocol
     test_names = [s for s in ds.settings("test") if len(ds.frames(s)) >= pr.frames]
-    if study.dataset.max_settings:
-        test_names = test_names[: max(pr.settings, study.dataset.max_settings)]
-    if len(test_names) < pr.settings:
-        raise ValueError(
-            f"{ds.root}: the protocol needs {pr.settings} test settings with >= {pr.frames} frames, "
-            f"found {len(test_names)} (test settings in the split: {len(ds.settings('test'))})"
-        )
-    test = [f for s in test_names[: pr.settings] for f in _evenly(ds.frames(s), pr.frames)]
+    short = [f"{s} ({len(ds.frames(s))})" for s in ds.settings("test") if len(ds.frames(s)) < pr.frames]
+    where = (f"{ds.root} (test split: {len(ds.settings('test'))} settings"
+             + (f"; with fewer than {pr.frames} frames: {', '.join(short[:8])}{' ...' if len(short) > 8 else ''})"
+                if short else ")"))
+    chosen = protocol_settings(test_names, pr, where)
+    test_names = sorted(set().union(*chosen.values()))
+    test = [f for s in test_names for f in _evenly(ds.frames(s), pr.frames)]
     train_names = ds.settings("train") + ds.settings("val")
     train_names = sorted(train_names)
     if study.dataset.max_settings:

@@ -19,6 +19,7 @@ import pandas as pd
 import torch
 
 from monolib import gcn, graph, paths, perception, scenegraphs
+from monolib.cell import metrics_of
 from monolib.graph import scene_nodes
 from monolib.hypersim import Camera
 from monolib.io import atomic_path, read_json, write_json, write_text
@@ -53,8 +54,8 @@ def to_study_frame(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def pick_cell(study: Study, method: str | None = None) -> dict:
-    """The finished graph-method cell (of `method`, or of any) with the best recall@1 among scenarios with
-    predicted depth and predicted semantics (what a new image has)."""
+    """The finished graph-method cell (of `method`, or of any) with the best recall@1 (``paper`` protocol) among
+    scenarios with predicted depth and predicted semantics (what a new image has)."""
     best = None
     wanted = [method] if method else study.graph_methods()
     files = [f for m in wanted for f in sorted((paths.study_dir(study.name) / "cells" / m).glob("*/cell.json"))]
@@ -65,7 +66,7 @@ def pick_cell(study: Study, method: str | None = None) -> dict:
             continue
         if not (f.parent / "model.pt").is_file():
             continue
-        if best is None or c["metrics"]["recall@1"] > best[0]["metrics"]["recall@1"]:
+        if best is None or metrics_of(c)["recall@1"] > metrics_of(best[0])["recall@1"]:  # the paper protocol
             best = (c, f.parent)
     if best is None:
         raise LocalizeError(f"{paths.study_dir(study.name) / 'cells'}: no finished {method or 'graph-method'} cell with "
@@ -96,7 +97,7 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     write_json(out / "meta.json", {
         "study": study.name, "study_file": study.path, "cell": c["folder"], "method": c["method"],
         "scenario": c["scenario"],
-        "threshold": c["threshold"], "seed": c["seed"], "cell_recall@1": c["metrics"]["recall@1"],
+        "threshold": c["threshold"], "seed": c["seed"], "cell_recall@1": metrics_of(c)["recall@1"],
         "models": {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)},
         "width": study.dataset.width, "height": study.dataset.height, "frames": len(test),
     })

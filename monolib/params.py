@@ -31,8 +31,9 @@ class DatasetSpec:
     width: int = 256
     height: int = 192
     train_settings: int = 48                 # synth: settings rendered for the training split
-    test_settings: int = 16                  # synth: settings rendered for the test split
-    family_size: int = 2                     # synth: settings per family (same catalogue and materials)
+    test_settings: int = 16                  # synth: test families, one setting each (the `paper` protocol's places)
+    test_siblings: int = 8                   # synth: test families that also get a sibling setting (`siblings`)
+    family_size: int = 2                     # synth: training settings per family (same catalogue and materials)
     frames_per_setting: int = 41             # frames per test setting (all scenes together)
     train_frames_per_setting: int = 20       # frames per training setting
     dim_fraction: float = 0.2                # synth: share of dim settings
@@ -124,7 +125,13 @@ class Variant:
 
 @dataclass
 class Protocol:
+    """The evaluation protocols; both are drawn from the same test frames and evaluated on the same encoders.
+
+    `paper`: `settings` test settings of as many different families (`ai_VVV`, the first setting of each in sorted
+    order). `siblings`: `siblings` families of two settings each (both evaluated; 0: no siblings protocol).
+    Each setting: `frames` frames, `queries` queries and `positives` positives."""
     settings: int = 16
+    siblings: int = 0                        # families of 2 settings in the `siblings` protocol (0: none)
     frames: int = 41
     queries: int = 35
     positives: int = 6
@@ -302,15 +309,22 @@ def _check(study: Study, check_files: bool = True) -> None:
     for key in ("train_settings", "test_settings", "family_size", "frames_per_setting", "train_frames_per_setting", "workers"):
         if getattr(ds, key) < 1:
             bad(f"dataset.{key}", f"expected at least 1, got {getattr(ds, key)}")
+    if not 0 <= ds.test_siblings <= ds.test_settings:
+        bad("dataset.test_siblings", f"expected 0..test_settings ({ds.test_settings}), got {ds.test_siblings}")
     if not 0.0 <= ds.dim_fraction <= 1.0:
         bad("dataset.dim_fraction", f"expected 0..1, got {ds.dim_fraction}")
     if pr.queries + pr.positives != pr.frames:
         bad("protocol.queries", f"queries ({pr.queries}) + positives ({pr.positives}) must equal frames ({pr.frames})")
     if pr.queries < 1 or pr.positives < 1 or pr.settings < 2:
         bad("protocol.settings", "need at least 2 settings, 1 query and 1 positive per setting")
+    if pr.siblings < 0:
+        bad("protocol.siblings", f"expected 0 (no siblings protocol) or a number of families, got {pr.siblings}")
     if ds.source == "synth" and not study.graphs_root:
         if pr.settings > ds.test_settings:
             bad("protocol.settings", f"{pr.settings} test settings asked, the dataset renders {ds.test_settings}")
+        if pr.siblings > ds.test_siblings:
+            bad("protocol.siblings", f"{pr.siblings} families of 2 settings asked, the dataset renders "
+                                     f"{ds.test_siblings} (dataset.test_siblings)")
         if pr.frames > ds.frames_per_setting:
             bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders {ds.frames_per_setting}")
     for k in pr.recall_k + pr.precision_k:
@@ -319,8 +333,13 @@ def _check(study: Study, check_files: bool = True) -> None:
     if not study.thresholds:
         bad("thresholds", "expected at least one threshold")
     for t in study.thresholds:
-        if not t > 0:
-            bad("thresholds", f"thresholds are distances in metres > 0 (or inf), got {t}")
+        if not t >= 0:
+            bad("thresholds", f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
+    for where, ts in [(f"scenarios.{n}.thresholds", sc.thresholds) for n, sc in study.scenarios.items()] + \
+                     [(f"variants.{n}.thresholds", v.thresholds) for n, v in study.variants.items()]:
+        for t in ts or []:
+            if not t >= 0:
+                bad(where, f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
     if not study.seeds:
         bad("seeds", "expected at least one seed")
     names = study.model_names()

@@ -20,8 +20,8 @@ def study_dir(study_name: str) -> Path:
 
 
 def threshold_tag(threshold: float) -> str:
-    """Folder-safe name of a threshold: 1.0 -> '1', 2.5 -> '2.5', inf -> 'inf'."""
-    t = float(threshold)
+    """Folder-safe name of a threshold: 0 (no edges) -> '0', 1.0 -> '1', 2.5 -> '2.5', inf -> 'inf'."""
+    t = float(threshold) + 0.0  # -0.0 -> 0.0
     if t == float("inf"):
         return "inf"
     return f"{t:g}"
@@ -29,7 +29,7 @@ def threshold_tag(threshold: float) -> str:
 
 def threshold_json(threshold: float) -> float | str:
     """A threshold as cell.json stores it: JSON has no infinity, so inf -> 'inf' (`float()` reads both back)."""
-    t = float(threshold)
+    t = float(threshold) + 0.0  # -0.0 -> 0.0
     return t if math.isfinite(t) else "inf"
 
 

@@ -73,10 +73,10 @@ def select(study: Study) -> dict[str, list[Data]]:
         for g in read_folder(root / split):
             by_setting.setdefault(split, {}).setdefault(g.setting, []).append(g)
     test_names = [s for s in sorted(by_setting["test"]) if len(by_setting["test"][s]) >= pr.frames]
-    if len(test_names) < pr.settings:
-        raise ValueError(f"{root / 'test'}: the protocol needs {pr.settings} settings with >= {pr.frames} graphs, "
-                         f"found {len(test_names)}")
-    test = [g for s in test_names[: pr.settings] for g in _evenly(by_setting["test"][s], pr.frames)]
+    from monolib.retrieval import protocol_settings
+
+    chosen = protocol_settings(test_names, pr, f"{root / 'test'} ({len(by_setting['test'])} settings)")
+    test = [g for s in sorted(set().union(*chosen.values())) for g in _evenly(by_setting["test"][s], pr.frames)]
     names = sorted(by_setting["train"])
     n_val = study.gcn.val_settings
     if len(names) <= n_val:

@@ -22,9 +22,18 @@ between cells (thresholds, encoder variants in ``encoder_ablation``, depth scale
 
 Metric definitions (the design's protocol)
 ------------------------------------------
-A query's candidates are its own setting's positives plus every frame of the other settings.
+A query's candidates are its own setting's positives plus every frame of the protocol's other settings.
 ``recall@k``: share of queries with at least one frame of their own setting in the top k.
 ``precision@k``: mean over queries of (own-setting frames in the top k) / k. Values in percent.
+
+Protocols
+---------
+A cell evaluates one trained encoder on two protocols (`monolib.retrieval.evaluate_protocols`): ``paper`` (test
+settings of different families: the paper's protocol, the headline Tables 1-2) and ``siblings`` (pairs of settings
+of one family, when the study has them: ``table1_recall_siblings.*``, ``table2_precision_siblings.*``). Every
+per-query table (``results.csv``, ``intervals.csv``, ``threshold_tests.csv``, ...) has a ``protocol`` column, and
+every statistic is computed within one protocol (its own bootstrap; nothing is paired across protocols). A cell
+written before there were two protocols (flat ``metrics``, rankings without ``protocol``) reads as ``paper``.
 """
 from __future__ import annotations
 
@@ -44,8 +53,10 @@ log = logging.getLogger(__name__)
 
 INF = math.inf
 METRICS = ("recall", "precision")
-RESULT_COLUMNS = ["method", "scenario", "threshold", "seed", "metric", "k", "value"]
-SUMMARY_KEYS = ["method", "scenario", "threshold", "metric", "k"]
+RESULT_COLUMNS = ["method", "scenario", "threshold", "seed", "protocol", "metric", "k", "value"]
+SUMMARY_KEYS = ["method", "scenario", "threshold", "protocol", "metric", "k"]
+PAPER, SIBLINGS = "paper", "siblings"   # the protocols (`monolib.retrieval.PROTOCOLS`), in table order
+PROTOCOL_ORDER = (PAPER, SIBLINGS)
 RANKING_COLUMNS = ["query", "query_setting", "rank", "match", "match_setting", "distance"]
 PROTOCOL_COLUMNS = ["frame", "setting", "role"]
 IMAGE_SCENARIO = "rgb"          # the scenario name image-only baselines are written under
@@ -67,15 +78,21 @@ def _natural_key(text: str):
 
 def _threshold(value) -> float:
     """1 / 1.0 / '1' -> 1.0; 'inf' / 'Infinity' / inf -> inf."""
-    return float(value)
+    return float(value) + 0.0
+
+
+NO_EDGES = "0 (no edges)"
 
 
 def threshold_label(t: float, tex: bool = False) -> str:
-    """The threshold as the paper prints it: 1, 2, 5, 10, ∞ (``$\\infty$`` in TeX), 2.5."""
+    """The threshold as the paper prints it: 1, 2, 5, 10, ∞ (``$\\infty$`` in TeX), 2.5; 0 (no edges: nodes
+    only) as ``0 (no edges)``."""
     if t is None or (isinstance(t, float) and math.isnan(t)):
         return "–" if not tex else "--"
     if math.isinf(t):
         return r"$\infty$" if tex else "∞"
+    if t == 0:
+        return NO_EDGES
     return f"{t:g}"
 
 
@@ -84,6 +101,45 @@ def _method_order(methods) -> list[str]:
 
     registry = list(METHODS)
     return sorted(set(methods), key=lambda m: (registry.index(m) if m in registry else len(registry), m))
+
+
+def _protocol_rank(name: str):
+    return (PROTOCOL_ORDER.index(name), "") if name in PROTOCOL_ORDER else (len(PROTOCOL_ORDER), str(name))
+
+
+def protocols_in(frame: pd.DataFrame) -> list[str]:
+    """The protocols present in a frame with a ``protocol`` column, paper first."""
+    return sorted(frame["protocol"].unique(), key=_protocol_rank) if "protocol" in frame.columns else [PAPER]
+
+
+def only_protocol(frame: Optional[pd.DataFrame], protocol: str) -> Optional[pd.DataFrame]:
+    """The rows of one protocol (a frame without a ``protocol`` column holds the paper protocol only)."""
+    if frame is None:
+        return None
+    if "protocol" not in frame.columns:
+        return frame if protocol == PAPER else frame.iloc[0:0]
+    return frame[frame["protocol"] == protocol]
+
+
+def split_protocols(rankings: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    """``{protocol: its rows}`` of a cell's ``rankings.csv`` or ``protocol.csv`` (paper first); a file without a
+    ``protocol`` column (a cell of one protocol) is ``{"paper": all rows}``."""
+    if "protocol" not in rankings.columns:
+        return {PAPER: rankings}
+    return {p: rankings[rankings["protocol"] == p].reset_index(drop=True) for p in protocols_in(rankings)}
+
+
+def _one_protocol_only(frame: pd.DataFrame, what: str) -> None:
+    if "protocol" in frame.columns and frame["protocol"].nunique() > 1:
+        raise ValueError(f"{what}: rows of protocols {protocols_in(frame)} together; select one (split_protocols)")
+
+
+def cell_metrics(cell: Mapping) -> dict[str, dict[str, float]]:
+    """``{protocol: {metric: value}}`` of a cell.json (flat ``metrics`` of an older cell: the paper protocol)."""
+    m = cell["metrics"]
+    if any(isinstance(v, Mapping) for v in m.values()):
+        return {str(p): dict(v) for p, v in sorted(m.items(), key=lambda kv: _protocol_rank(kv[0]))}
+    return {PAPER: dict(m)}
 
 
 def _is_image(method: str, scenario: str) -> bool:
@@ -108,9 +164,9 @@ def cell_files(study_name: str) -> list[Path]:
 def collect(study_name: str) -> pd.DataFrame:
     """All cells of a study in long format: one row per number.
 
-    Columns ``method, scenario, threshold (float, inf for 'inf'), seed, metric ('recall'|'precision'), k, value``
-    (percent), sorted by method, scenario (natural order), threshold, seed, metric, k. Raises FileNotFoundError
-    when the study has no cell yet.
+    Columns ``method, scenario, threshold (float, inf for 'inf'), seed, protocol ('paper'|'siblings'), metric
+    ('recall'|'precision'), k, value`` (percent), sorted by method, scenario (natural order), threshold, seed,
+    protocol, metric, k. Raises FileNotFoundError when the study has no cell yet.
     """
     files = cell_files(study_name)
     if not files:
@@ -120,16 +176,17 @@ def collect(study_name: str) -> pd.DataFrame:
         cell = io.read_json(f)
         try:
             base = (str(cell["method"]), str(cell["scenario"]), _threshold(cell["threshold"]), int(cell["seed"]))
-            metrics = cell["metrics"]
-        except (KeyError, TypeError, ValueError) as exc:
+            per_protocol = cell_metrics(cell)
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise ValueError(f"{f}: not a valid cell.json ({exc!r})") from exc
-        for name, value in metrics.items():
-            metric, _, k = name.partition("@")
-            if metric not in METRICS or not k.isdigit():
-                continue
-            rows.append((*base, metric, int(k), float(value)))
+        for protocol, metrics in per_protocol.items():
+            for name, value in metrics.items():
+                metric, _, k = name.partition("@")
+                if metric not in METRICS or not k.isdigit():
+                    continue
+                rows.append((*base, protocol, metric, int(k), float(value)))
     df = pd.DataFrame(rows, columns=RESULT_COLUMNS)
-    return _sort(df, ["method", "scenario", "threshold", "seed", "metric", "k"])
+    return _sort(df, ["method", "scenario", "threshold", "seed", "protocol", "metric", "k"])
 
 
 def _sort(df: pd.DataFrame, by: list[str]) -> pd.DataFrame:
@@ -139,6 +196,8 @@ def _sort(df: pd.DataFrame, by: list[str]) -> pd.DataFrame:
         if col.name == "method":
             order = _method_order(col.unique())
             return col.map(order.index)
+        if col.name == "protocol":
+            return col.map(_protocol_rank)
         return col
 
     return df.sort_values(by, key=key, kind="mergesort").reset_index(drop=True)
@@ -206,8 +265,10 @@ def _check_columns(df: pd.DataFrame, columns: list[str], what: str) -> None:
 
 
 def hit_matrix(rankings: pd.DataFrame) -> tuple[pd.Index, np.ndarray]:
-    """(queries, hits): ``hits[i, r]`` is True when query i's rank r+1 candidate is from the query's setting."""
+    """(queries, hits): ``hits[i, r]`` is True when query i's rank r+1 candidate is from the query's setting.
+    The rankings of one protocol (`split_protocols`)."""
     _check_columns(rankings, RANKING_COLUMNS, "rankings")
+    _one_protocol_only(rankings, "rankings")
     codes, queries = pd.factorize(rankings["query"], sort=True)
     ranks = rankings["rank"].to_numpy(dtype=int)
     if len(ranks) and ranks.min() < 1:
@@ -258,11 +319,19 @@ def check_protocol(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Op
 
     Checked: every ranked query is a protocol query of the setting it claims; settings agree with frame keys;
     (query, rank) and (query, match) are unique; no query retrieves itself; a candidate of the query's own setting
-    is one of that setting's positives (never another query, nor a frame outside the draw); no setting has more
-    than ``positives`` positives (when given). Returns counts ``{"queries", "settings", "positives"}``.
+    is one of that setting's positives (never another query, nor a frame outside the draw); every candidate is of
+    one of the protocol's settings; no setting has more than ``positives`` positives (when given). One
+    protocol's rows (`split_protocols`; `check_protocols` checks every protocol of a cell). Returns counts
+    ``{"queries", "settings", "positives"}``.
     """
     _check_columns(rankings, RANKING_COLUMNS, "rankings")
     _check_columns(protocol, PROTOCOL_COLUMNS, "protocol")
+    _one_protocol_only(rankings, "rankings")
+    _one_protocol_only(protocol, "protocol")
+    if "protocol" in rankings.columns and "protocol" in protocol.columns and len(rankings) and len(protocol) \
+            and rankings["protocol"].iloc[0] != protocol["protocol"].iloc[0]:
+        raise ProtocolError(f"rankings of protocol {rankings['protocol'].iloc[0]!r} checked against the draw of "
+                            f"{protocol['protocol'].iloc[0]!r}")
 
     def fail(mask: pd.Series, msg: str, frame: pd.DataFrame = rankings):
         if mask.any():
@@ -289,6 +358,7 @@ def check_protocol(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Op
     fail(rankings.duplicated(["query", "rank"]), "rankings: a (query, rank) pair appears twice")
     fail(rankings.duplicated(["query", "match"]), "rankings: a query retrieves the same frame twice")
     fail(rankings["match"] == rankings["query"], "rankings: a query retrieves itself")
+    fail(~rankings["match_setting"].isin(protocol["setting"]), "rankings: a match is not of the protocol's settings")
     own = rankings["match_setting"] == rankings["query_setting"]
     m_role = rankings["match"].map(role_of)
     fail(own & (m_role == "query"), "rankings: a query retrieves another query of its own setting")
@@ -297,13 +367,44 @@ def check_protocol(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Op
             "positives": int((roles == "positive").sum())}
 
 
+def check_protocols(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Optional[int] = None,
+                    settings: Optional[Mapping[str, int]] = None) -> dict[str, dict]:
+    """`check_protocol` for every protocol of a cell (``rankings.csv`` and ``protocol.csv`` with their
+    ``protocol`` column), and the protocols' shapes: ``paper``'s settings are all of different families
+    (``ai_VVV``), ``siblings``' settings are pairs of one family; with `settings` (``{protocol: number of
+    settings}``) each protocol has that many. Both files must hold the same protocols.
+    Returns ``{protocol: counts}``."""
+    from monolib.retrieval import family
+
+    ranked, drawn = split_protocols(rankings), split_protocols(protocol)
+    if list(ranked) != list(drawn):
+        raise ProtocolError(f"rankings hold protocols {list(ranked)}, protocol.csv {list(drawn)}")
+    out = {}
+    for name, r in ranked.items():
+        d = drawn[name]
+        out[name] = check_protocol(r, d, positives)
+        names = sorted(d["setting"].astype(str).unique())
+        fams = pd.Series(names).map(family).value_counts()
+        if name == PAPER and (fams > 1).any():
+            raise ProtocolError(f"protocol {name}: settings of one family: {sorted(n for n in names if fams[family(n)] > 1)}")
+        if name == SIBLINGS and (fams != 2).any():
+            raise ProtocolError(f"protocol {name}: families without exactly 2 settings: {sorted(fams[fams != 2].index)}")
+        if settings is not None and name in settings and len(names) != settings[name]:
+            raise ProtocolError(f"protocol {name}: {len(names)} settings, {settings[name]} expected")
+    if settings is not None and set(settings) != set(out):
+        raise ProtocolError(f"protocols {list(out)}, expected {list(settings)}")
+    return out
+
+
 # ---- summary and the paper's numbers ---------------------------------------------------------------------------
 
 def summary(results: pd.DataFrame) -> pd.DataFrame:
-    """Mean, sample std (ddof 1; NaN when n = 1) and n over seeds per (method, scenario, threshold, metric, k)."""
-    g = results.groupby(SUMMARY_KEYS, sort=False)["value"]
+    """Mean, sample std (ddof 1; NaN when n = 1) and n over seeds per (method, scenario, threshold, protocol,
+    metric, k)."""
+    keys = [k for k in SUMMARY_KEYS if k in results.columns]
+    g = results.groupby(keys, sort=False)["value"]
     out = g.agg(mean="mean", std="std", n="count").reset_index()
-    return _sort(out, SUMMARY_KEYS)
+    return _sort(out, keys)
 
 
 def paper_tables() -> pd.DataFrame:
@@ -334,9 +435,9 @@ def paper_tables() -> pd.DataFrame:
 
 N_BOOT = 1000
 BOOT_SEED = 0
-QUERY_KEYS = ["method", "scenario", "threshold", "seed", "setting", "query"]
-GROUP_KEYS = ["method", "scenario", "threshold"]
-INTERVAL_COLUMNS = ["method", "scenario", "threshold", "metric", "k", "mean", "ci_lo", "ci_hi", "n_seeds"]
+QUERY_KEYS = ["method", "scenario", "threshold", "seed", "protocol", "setting", "query"]
+GROUP_KEYS = ["method", "scenario", "threshold", "protocol"]
+INTERVAL_COLUMNS = ["method", "scenario", "threshold", "protocol", "metric", "k", "mean", "ci_lo", "ci_hi", "n_seeds"]
 DAGGER = "†"
 STAR = "*"
 
@@ -374,28 +475,37 @@ def _metric_cols(frame: pd.DataFrame) -> list[str]:
 
 
 def query_table(study_name: str) -> pd.DataFrame:
-    """Per-query values of every cell of a study: ``method, scenario, threshold, seed, setting, query`` and one
-    column per metric the cell recorded (see `per_query_values`), read from each cell's ``rankings.csv``."""
+    """Per-query values of every cell of a study: ``method, scenario, threshold, seed, protocol, setting, query``
+    and one column per metric the cell recorded (see `per_query_values`), read from each cell's ``rankings.csv``,
+    protocol by protocol."""
     parts = []
     for f in cell_files(study_name):
         cell = io.read_json(f)
-        names = [n for n in cell.get("metrics", {}) if n.partition("@")[0] in METRICS and n.partition("@")[2].isdigit()]
-        rk = sorted(int(n.partition("@")[2]) for n in names if n.startswith("recall@"))
-        pk = sorted(int(n.partition("@")[2]) for n in names if n.startswith("precision@"))
         try:
-            rankings = _read_rankings(f.parent)
-            depth = int(rankings["rank"].max()) if len(rankings) else 0
-            if any(k > depth for k in rk + pk):
-                log.warning("%s: the rankings hold the top %d: no interval for k > %d", f.parent, depth, depth)
-            q = per_query_values(rankings, [k for k in rk if k <= depth], [k for k in pk if k <= depth])
-        except (FileNotFoundError, ValueError, KeyError) as exc:
+            recorded = cell_metrics(cell)
+            by_protocol = split_protocols(_read_rankings(f.parent))
+        except (FileNotFoundError, ValueError, KeyError, TypeError, AttributeError) as exc:
             log.warning("%s: no per-query values (%s); its intervals are left out", f.parent, exc)
             continue
-        q.insert(0, "method", str(cell["method"]))
-        q.insert(1, "scenario", str(cell["scenario"]))
-        q.insert(2, "threshold", _threshold(cell["threshold"]))
-        q.insert(3, "seed", int(cell["seed"]))
-        parts.append(q)
+        for protocol, rankings in by_protocol.items():
+            names = [n for n in recorded.get(protocol, {}) if n.partition("@")[0] in METRICS
+                     and n.partition("@")[2].isdigit()]
+            rk = sorted(int(n.partition("@")[2]) for n in names if n.startswith("recall@"))
+            pk = sorted(int(n.partition("@")[2]) for n in names if n.startswith("precision@"))
+            try:
+                depth = int(rankings["rank"].max()) if len(rankings) else 0
+                if any(k > depth for k in rk + pk):
+                    log.warning("%s: the rankings hold the top %d: no interval for k > %d", f.parent, depth, depth)
+                q = per_query_values(rankings, [k for k in rk if k <= depth], [k for k in pk if k <= depth])
+            except (ValueError, KeyError) as exc:
+                log.warning("%s (%s): no per-query values (%s); its intervals are left out", f.parent, protocol, exc)
+                continue
+            q.insert(0, "method", str(cell["method"]))
+            q.insert(1, "scenario", str(cell["scenario"]))
+            q.insert(2, "threshold", _threshold(cell["threshold"]))
+            q.insert(3, "seed", int(cell["seed"]))
+            q.insert(4, "protocol", protocol)
+            parts.append(q)
     if not parts:
         raise FileNotFoundError(f"{_cells_root(study_name)}: no cell with a readable rankings.csv")
     df = pd.concat(parts, ignore_index=True)
@@ -424,6 +534,8 @@ class Bootstrap:
         """Sized for every group of a `query_table`."""
         if qv.empty:
             return cls(1, 1, 1, n_boot, seed)
+        if "protocol" not in qv.columns:
+            qv = qv.assign(protocol=PAPER)
         n_seeds = int(qv.groupby(GROUP_KEYS)["seed"].nunique().max())
         n_settings = int(qv.groupby(GROUP_KEYS + ["seed"])["setting"].nunique().max())
         n_settings = max(n_settings, int(qv["setting"].nunique()))
@@ -488,8 +600,10 @@ class Bootstrap:
         return {"mean": self.observed(values, nq), "ci_lo": lo, "ci_hi": hi, "boot": boot}
 
 
-def _rows_of(qv: pd.DataFrame, method: str, scenario: str, threshold: float) -> pd.DataFrame:
-    return qv[(qv["method"] == method) & (qv["scenario"] == scenario) & (qv["threshold"] == threshold)]
+def _rows_of(qv: pd.DataFrame, method: str, scenario: str, threshold: float,
+             protocol: Optional[str] = None) -> pd.DataFrame:
+    rows = qv[(qv["method"] == method) & (qv["scenario"] == scenario) & (qv["threshold"] == threshold)]
+    return rows if protocol is None else only_protocol(rows, protocol)
 
 
 def _group_cols(frame: pd.DataFrame, cols: Optional[list[str]] = None) -> list[str]:
@@ -498,10 +612,13 @@ def _group_cols(frame: pd.DataFrame, cols: Optional[list[str]] = None) -> list[s
 
 
 def intervals(qv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
-    """``intervals.csv``: per (method, scenario, threshold, metric, k) the mean and its 95 % bootstrap interval,
-    and the number of seeds (columns `INTERVAL_COLUMNS`)."""
+    """``intervals.csv``: per (method, scenario, threshold, protocol, metric, k) the mean and its 95 % bootstrap
+    interval, and the number of seeds (columns `INTERVAL_COLUMNS`). Pass one protocol's rows with its own
+    `Bootstrap` (as `write_report` does) for intervals independent of the other protocol."""
     rows = []
-    for (method, scenario, threshold), g in qv.groupby(GROUP_KEYS, sort=False):
+    if "protocol" not in qv.columns:
+        qv = qv.assign(protocol=PAPER)
+    for (method, scenario, threshold, protocol), g in qv.groupby(GROUP_KEYS, sort=False):
         cols = _group_cols(g)
         if not cols:
             continue
@@ -509,8 +626,8 @@ def intervals(qv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
         iv = boot.interval(values, nq)
         for j, c in enumerate(cols):
             metric, k = _split_metric(c)
-            rows.append((method, scenario, float(threshold), metric, k, float(iv["mean"][j]), float(iv["ci_lo"][j]),
-                         float(iv["ci_hi"][j]), int(g["seed"].nunique())))
+            rows.append((method, scenario, float(threshold), protocol, metric, k, float(iv["mean"][j]),
+                         float(iv["ci_lo"][j]), float(iv["ci_hi"][j]), int(g["seed"].nunique())))
     out = pd.DataFrame(rows, columns=INTERVAL_COLUMNS)
     return _sort(out, SUMMARY_KEYS)
 
@@ -524,9 +641,9 @@ def paired_difference(a: pd.DataFrame, b: pd.DataFrame, boot: Bootstrap,
     excludes 0), and ``n_seeds``, ``n_queries`` of the shared rows.
     """
     cols = [c for c in (_group_cols(a, cols)) if c in _group_cols(b, cols)]
-    keys = ["seed", "setting", "query"]
+    keys = ["seed", "setting", "query"] + (["protocol"] if "protocol" in a.columns and "protocol" in b.columns else [])
     j = a[keys + cols].merge(b[keys + cols], on=keys, how="inner", suffixes=("_a", "_b"), validate="one_to_one")
-    d = j[keys].copy()
+    d = j[keys].drop(columns="protocol", errors="ignore").copy()
     for c in cols:
         d[c] = j[f"{c}_a"].to_numpy(dtype=float) - j[f"{c}_b"].to_numpy(dtype=float)
     rows = []
@@ -546,13 +663,19 @@ def _best_threshold(means: pd.Series) -> float:
     return float(min(t for t, v in means.items() if v >= top - 1e-9))
 
 
+TEST_COLUMNS = ["method", "scenario", "protocol", "metric", "k", "threshold", "best_threshold", "diff", "ci_lo",
+                "ci_hi", "significant"]
+
+
 def threshold_tests(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
-    """Per (method, scenario, metric, k) with more than one threshold: every threshold against the scenario's best
-    (highest mean; ties: the smallest threshold), paired bootstrap of (threshold - best).
-    Columns ``method, scenario, metric, k, threshold, best_threshold, diff, ci_lo, ci_hi, significant``
-    (significant: the interval excludes 0, i.e. significantly worse than the best)."""
+    """Per (method, scenario, protocol, metric, k) with more than one threshold: every threshold against the
+    scenario's best (highest mean; ties: the smallest threshold), paired bootstrap of (threshold - best) on the
+    protocol's queries. Columns `TEST_COLUMNS` (significant: the interval excludes 0, i.e. significantly worse
+    than the best)."""
     rows = []
-    for (method, scenario), g in iv.groupby(["method", "scenario"], sort=False):
+    if "protocol" not in iv.columns:
+        iv = iv.assign(protocol=PAPER)
+    for (method, scenario, protocol), g in iv.groupby(["method", "scenario", "protocol"], sort=False):
         if g["threshold"].nunique() < 2:
             continue
         best = {f"{m}@{k}": _best_threshold(gm.set_index("threshold")["mean"])
@@ -560,14 +683,14 @@ def threshold_tests(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap) -> pd.D
         for t in sorted(g["threshold"].unique()):
             for b in sorted(set(best.values()) - {t}):
                 cols = [c for c, bt in best.items() if bt == b]
-                d = paired_difference(_rows_of(qv, method, scenario, t), _rows_of(qv, method, scenario, b), boot, cols)
+                d = paired_difference(_rows_of(qv, method, scenario, t, protocol),
+                                      _rows_of(qv, method, scenario, b, protocol), boot, cols)
                 for r in d.itertuples(index=False):
-                    rows.append((method, scenario, r.metric, int(r.k), float(t), b, r.diff, r.ci_lo, r.ci_hi,
-                                 bool(r.significant)))
-    out = pd.DataFrame(rows, columns=["method", "scenario", "metric", "k", "threshold", "best_threshold", "diff",
-                                      "ci_lo", "ci_hi", "significant"])
+                    rows.append((method, scenario, protocol, r.metric, int(r.k), float(t), b, r.diff, r.ci_lo,
+                                 r.ci_hi, bool(r.significant)))
+    out = pd.DataFrame(rows, columns=TEST_COLUMNS)
     out["metric_order"] = out["metric"].map(METRICS.index)
-    out = _sort(out, ["method", "scenario", "metric_order", "k", "threshold"]).drop(columns="metric_order")
+    out = _sort(out, ["method", "scenario", "protocol", "metric_order", "k", "threshold"]).drop(columns="metric_order")
     return out
 
 
@@ -575,20 +698,27 @@ def threshold_tests(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap) -> pd.D
 
 def _table_frame(results: pd.DataFrame, metric: str, iv: Optional[pd.DataFrame] = None,
                  tests: Optional[pd.DataFrame] = None) -> pd.DataFrame:
-    """The machine-readable table: method, scenario, threshold, k, mean, std, n, [ci_lo, ci_hi,] paper,
-    [worse_than_best] (+ layout helpers)."""
+    """The machine-readable table of one protocol's rows: method, scenario, threshold, protocol, k, mean, std, n,
+    [ci_lo, ci_hi,] paper, [worse_than_best] (+ layout helpers). The paper's numbers sit beside the ``paper``
+    protocol only (the paper never ran the siblings protocol)."""
+    if "protocol" not in results.columns:
+        results = results.assign(protocol=PAPER)
+    _one_protocol_only(results, "table")
+    on = ["method", "scenario", "threshold", "protocol", "k"]
     s = summary(results[results["metric"] == metric])
     if iv is not None:
+        iv = iv if "protocol" in iv.columns else iv.assign(protocol=PAPER)
         ci = iv[iv["metric"] == metric][SUMMARY_KEYS + ["ci_lo", "ci_hi"]].drop(columns="metric")
-        s = s.merge(ci, on=["method", "scenario", "threshold", "k"], how="left")
+        s = s.merge(ci, on=on, how="left")
     paper = paper_tables()
     paper = paper[paper["metric"] == metric][["scenario", "threshold", "k", "value"]].rename(columns={"value": "paper"})
-    paper["method"] = "gcn"     # the paper's numbers are its GCN's
-    s = s.merge(paper, on=["method", "scenario", "threshold", "k"], how="left")
+    paper["method"] = "gcn"     # the paper's numbers are its GCN's, on its protocol
+    paper["protocol"] = PAPER
+    s = s.merge(paper, on=on, how="left")
     if tests is not None:
-        tt = tests[tests["metric"] == metric][["method", "scenario", "threshold", "k", "significant"]]
-        s = s.merge(tt.rename(columns={"significant": "worse_than_best"}),
-                    on=["method", "scenario", "threshold", "k"], how="left")
+        tests = tests if "protocol" in tests.columns else tests.assign(protocol=PAPER)
+        tt = tests[tests["metric"] == metric][on + ["significant"]]
+        s = s.merge(tt.rename(columns={"significant": "worse_than_best"}), on=on, how="left")
         s["worse_than_best"] = s["worse_than_best"].astype("boolean").fillna(False).astype(bool)
     s["image"] = [_is_image(m, sc) for m, sc in zip(s["method"], s["scenario"])]
     # graph methods first, by scenario (each variant right below the paper's gcn), image baselines below
@@ -652,12 +782,34 @@ def _n_note(t: pd.DataFrame) -> str:
     return f"n = {int(ns[0])}–{int(ns[-1])} seeds (see the csv)"
 
 
+PROTOCOL_NOTES = {
+    PAPER: "Protocol `paper` (the paper's): each test setting is of another family (ai_VVV); a query's candidates "
+           "are its setting's positives and every frame of the other settings.",
+    SIBLINGS: "Protocol `siblings` (the paper's \"two neighbouring offices\", which it never tested): pairs of test "
+              "settings of one family (same furniture and materials, another layout); a query's candidates are its "
+              "setting's positives and every frame of the other settings, its sibling's included. Same trained "
+              "encoders as the `paper` tables.",
+}
+
+
+def _protocol_of(t: pd.DataFrame) -> str:
+    return str(t["protocol"].iloc[0]) if "protocol" in t.columns and len(t) else PAPER
+
+
 def _caption(metric: str, t: pd.DataFrame, tex: bool = False, n_boot: Optional[int] = None) -> str:
     pm, inf, dag = (r"$\pm$", r"$\infty$", r"$^\dagger$") if tex else ("±", "∞", DAGGER)
     ours = "Ours: one seed" if set(t["n"]) == {1} else f"Ours: mean {pm} std over seeds, {_n_note(t)}"
-    text = (f"{ours}; paper: the published single-run number "
-            f"(GCN rows, thresholds 1, 2, 5, 10, {inf}). "
-            f"Bold: best mean per method and scenario for each k.")
+    protocol = _protocol_of(t)
+    note = PROTOCOL_NOTES.get(protocol, f"Protocol `{protocol}`.")
+    note = note.replace("`", "").replace("_", r"\_") if tex else note
+    if t["paper"].notna().any():
+        text = (f"{note} {ours}; paper: the published single-run number "
+                f"(GCN rows, thresholds 1, 2, 5, 10, {inf}). ")
+    else:
+        text = f"{note} {ours}. "
+    text += "Bold: best mean per method and scenario for each k."
+    if (t["threshold"] == 0).any():
+        text += " Threshold 0: no edges (the encoder sees the nodes only)."
     if "ci_lo" in t.columns:
         text += (f" [lo, hi]: 95% bootstrap interval of our mean ({n_boot or N_BOOT} resamples of test settings, "
                  f"of queries within each setting and of seeds, all with replacement).")
@@ -684,9 +836,14 @@ def _cell_text(c: Optional[dict], tex: bool) -> str:
     return text + (DAGGER if c["worse"] else "")
 
 
+def _title(metric: str, t: pd.DataFrame) -> str:
+    protocol = _protocol_of(t)
+    return TABLES[metric][1] + ("" if protocol == PAPER else f", {protocol} protocol")
+
+
 def _md_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None) -> str:
     t, ks, rows = _layout(results, metric, scenario_labels, iv, tests)
-    title = TABLES[metric][1]
+    title = _title(metric, t)
     has_paper = t["paper"].notna().any()
     head = ["method", "data", "threshold (m)"] + [f"k={k}" for k in ks]
     if has_paper:
@@ -717,7 +874,7 @@ def _tex(text: str) -> str:
 
 def _tex_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None) -> str:
     t, ks, rows = _layout(results, metric, scenario_labels, iv, tests)
-    name, title = TABLES[metric]
+    name, title = TABLES[metric][0] + _suffix(_protocol_of(t)), _title(metric, t)
     has_paper = t["paper"].notna().any()
     nk = len(ks)
     cols = "lll" + "r" * nk + ("r" * nk if has_paper else "")
@@ -768,10 +925,19 @@ def table_markdown(results: pd.DataFrame, metric: str, scenario_labels: Optional
     return _md_table(metric, results, scenario_labels or {}, intervals, tests)
 
 
+def _suffix(protocol: str) -> str:
+    """File-name suffix of a protocol's tables: '' for the paper protocol (the headline tables), else '_<name>'."""
+    return "" if protocol == PAPER else f"_{protocol}"
+
+
 def write_tables(results: pd.DataFrame, out_dir: str | Path,
                  scenario_labels: Optional[Mapping[str, str]] = None, intervals: Optional[pd.DataFrame] = None,
-                 tests: Optional[pd.DataFrame] = None, n_boot: Optional[int] = None) -> dict[str, Path]:
-    """Write ``table1_recall.{md,csv,tex}`` and ``table2_precision.{md,csv,tex}`` into `out_dir`.
+                 tests: Optional[pd.DataFrame] = None, n_boot: Optional[int] = None,
+                 protocol: str = PAPER) -> dict[str, Path]:
+    """Write ``table1_recall.{md,csv,tex}`` and ``table2_precision.{md,csv,tex}`` of one protocol into `out_dir`
+    (the ``paper`` protocol; another protocol's files end in ``_<protocol>``: ``table1_recall_siblings.md``, keys
+    ``table1_siblings_md``...). `results`, `intervals` and `tests` may hold every protocol: the rows of `protocol`
+    are used.
 
     Rows: method / scenario x threshold, image baselines below ("RGB only"); columns: k (ours, mean ± std over
     seeds, or the mean alone when n = 1; with `intervals` (see `intervals`) followed by the 95 % bootstrap
@@ -783,11 +949,13 @@ def write_tables(results: pd.DataFrame, out_dir: str | Path,
     out_dir = Path(out_dir)
     labels = dict(scenario_labels or {})
     written: dict[str, Path] = {}
+    results, intervals, tests = (only_protocol(f, protocol) for f in (results, intervals, tests))
     for metric, (name, _) in TABLES.items():
+        name = name + _suffix(protocol)
         if not (results["metric"] == metric).any():
             log.warning("no %s numbers in the results: %s not written", metric, name)
             continue
-        short = name.split("_")[0]
+        short = name.split("_")[0] + _suffix(protocol)
         for ext, text in (("md", _md_table(metric, results, labels, intervals, tests, n_boot)),
                           ("csv", _csv_table(metric, results, intervals, tests)),
                           ("tex", _tex_table(metric, results, labels, intervals, tests, n_boot))):
@@ -807,21 +975,36 @@ def _figure(**kw):
     return Figure(**kw)
 
 
+def _metres(t: float) -> str:
+    """'1 m', '∞ m', '0 (no edges)': a threshold in a figure's text."""
+    return threshold_label(t) if t == 0 else f"{threshold_label(t)} m"
+
+
+def _tick(t: float) -> str:
+    return threshold_label(t).replace(" (", "\n(")
+
+
 def fig_recall_vs_threshold(results: pd.DataFrame, path: str | Path, method: str = "gcn", k: int = 1,
                             scenario_labels: Optional[Mapping[str, str]] = None,
-                            intervals: Optional[pd.DataFrame] = None) -> Path:
-    """recall@k against the edge threshold: one line per scenario (mean, error bars = std over seeds, or the 95 %
-    bootstrap interval when `intervals` are given), the paper's values as faint dotted lines in the same colour,
-    image baselines as horizontal dashed lines."""
+                            intervals: Optional[pd.DataFrame] = None, protocol: str = PAPER) -> Path:
+    """recall@k against the edge threshold (0: no edges) on one protocol (default ``paper``): one line per
+    scenario (mean, error bars = std over seeds, or the 95 % bootstrap interval when `intervals` are given), the
+    paper's values as faint dotted lines in the same colour (``paper`` protocol only), image baselines as
+    horizontal dashed lines."""
     import matplotlib
 
     labels = dict(scenario_labels or {})
+    results = only_protocol(results if "protocol" in results.columns else results.assign(protocol=PAPER), protocol)
     s = summary(results[(results["metric"] == "recall") & (results["k"] == k)])
     if intervals is not None:
+        intervals = only_protocol(intervals if "protocol" in intervals.columns else intervals.assign(protocol=PAPER),
+                                  protocol)
         s = s.merge(intervals[SUMMARY_KEYS + ["ci_lo", "ci_hi"]], on=SUMMARY_KEYS, how="left")
     ours = s[(s["method"] == method) & ~s["scenario"].eq(IMAGE_SCENARIO)]
     paper = paper_tables()
     paper = paper[(paper["metric"] == "recall") & (paper["k"] == k)]
+    if protocol != PAPER:
+        paper = paper.iloc[0:0]
     thresholds = sorted(set(ours["threshold"]) | (set(paper["threshold"]) if method == "gcn" else set()))
     xpos = {t: i for i, t in enumerate(thresholds)}
     scenarios = sorted(ours["scenario"].unique(), key=_natural_key)
@@ -849,7 +1032,7 @@ def fig_recall_vs_threshold(results: pd.DataFrame, path: str | Path, method: str
     for j, (m, g) in enumerate(base.groupby("method", sort=True)):
         ax.axhline(float(g["mean"].mean()), color="0.35", linestyle="--", linewidth=1.2,
                    dashes=(5 + 2 * j, 3), label=f"{m} (RGB only)")
-    ax.set_xticks(range(len(thresholds)), [threshold_label(t) for t in thresholds])
+    ax.set_xticks(range(len(thresholds)), [_tick(t) for t in thresholds])
     ax.set_xlabel("edge distance threshold (m)")
     ax.set_ylabel(f"recall@{k} (%)")
     ax.set_ylim(0, 100)
@@ -857,7 +1040,8 @@ def fig_recall_vs_threshold(results: pd.DataFrame, path: str | Path, method: str
         spread = f"error bars: 95% bootstrap intervals, {_n_note(s).replace(' (mean only)', '')}"
     else:
         spread = "one seed" if set(s["n"]) <= {1} else f"error bars: std over seeds, {_n_note(s)}"
-    ax.set_title(f"{method}: recall@{k} vs edge threshold ({spread})", fontsize=9)
+    where = "" if protocol == PAPER else f", {protocol} protocol"
+    ax.set_title(f"{method}: recall@{k} vs edge threshold{where} ({spread})", fontsize=9)
     ax.grid(alpha=0.3)
     handles, names = ax.get_legend_handles_labels()
     rank = lambda name: 1 if name.endswith("(paper)") else 2 if name.endswith("(RGB only)") else 0
@@ -877,8 +1061,10 @@ def _read_rankings(cell: Path) -> pd.DataFrame:
 def match_cells(study_name: str, results: Optional[pd.DataFrame] = None, method: str = "gcn",
                 threshold: Optional[float] = None, seed: Optional[int] = None) -> dict[str, tuple[float, int, Path]]:
     """``{scenario: (threshold, seed, cell folder)}`` used for Figure 5: per scenario the given threshold, or the
-    one with the best mean recall@1 (ties: the smallest threshold); the given seed, or the smallest one."""
+    one with the best mean recall@1 of the ``paper`` protocol (ties: the smallest threshold); the given seed, or
+    the smallest one."""
     results = collect(study_name) if results is None else results
+    results = only_protocol(results, PAPER)
     r = results[(results["method"] == method) & (results["metric"] == "recall") & (results["k"] == 1)]
     if r.empty:
         raise FileNotFoundError(f"{_cells_root(study_name) / method}: no {method} cell with recall@1")
@@ -954,8 +1140,8 @@ def fig_matches(study_name: str, rgb_of: RgbOf, path: str | Path, method: str = 
                 results: Optional[pd.DataFrame] = None, threshold: Optional[float] = None,
                 seed: Optional[int] = None, queries: Optional[list[str]] = None, n_queries: int = 3,
                 scenario_labels: Optional[Mapping[str, str]] = None) -> Path:
-    """The paper's Figure 5: rows = queries, columns = the query then each scenario's top-1 match, framed green
-    when the match is from the query's setting and red otherwise.
+    """The paper's Figure 5 (``paper`` protocol): rows = queries, columns = the query then each scenario's top-1
+    match, framed green when the match is from the query's setting and red otherwise.
 
     Cells come from `match_cells` (per scenario the best threshold by mean recall@1 and the smallest seed, unless
     given); queries from `pick_queries` unless given. ``rgb_of(frame_key)`` returns a uint8 (H, W, 3) image (None:
@@ -965,7 +1151,7 @@ def fig_matches(study_name: str, rgb_of: RgbOf, path: str | Path, method: str = 
     cells = match_cells(study_name, results, method, threshold, seed)
     top1 = {}
     for sc, (_, _, cell) in cells.items():
-        r = _read_rankings(cell)
+        r = split_protocols(_read_rankings(cell))[PAPER]
         top1[sc] = r[r["rank"] == 1].drop_duplicates("query").reset_index(drop=True)
     chosen = list(queries) if queries else pick_queries(top1, n_queries)
     if not chosen:
@@ -993,7 +1179,8 @@ def fig_matches(study_name: str, rgb_of: RgbOf, path: str | Path, method: str = 
                 ax.set_xlabel(str(row["match"]), fontsize=5.5, color="darkgreen" if ok else "darkred")
             if i == 0:
                 t, sd, _ = cells[sc]
-                ax.set_title(f"{sc}: {labels.get(sc, sc)}\n(t = {threshold_label(t)} m, seed {sd})", fontsize=6.5)
+                ax.set_title(f"{sc}: {labels.get(sc, sc)}\n(t = {_metres(t)}, seed {sd})",
+                             fontsize=6.5)
     for ax in np.ravel(axes):
         ax.set_xticks([])
         ax.set_yticks([])
@@ -1060,15 +1247,23 @@ def _pick_cols(cols: list[str]) -> list[str]:
     return out
 
 
-ABLATION_COLUMNS = ["method", "description", "scenario", "threshold", "metric", "k", "mean", "ci_lo", "ci_hi",
-                    "n_seeds", "diff_vs_base", "diff_lo", "diff_hi", "significant"]
+ABLATION_COLUMNS = ["method", "description", "scenario", "threshold", "protocol", "metric", "k", "mean", "ci_lo",
+                    "ci_hi", "n_seeds", "diff_vs_base", "diff_lo", "diff_hi", "significant"]
+
+
+def _with_protocol(frame: pd.DataFrame) -> pd.DataFrame:
+    return frame if "protocol" in frame.columns else frame.assign(protocol=PAPER)
 
 
 def encoder_ablation(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, study=None,
-                     base: str = "gcn") -> pd.DataFrame:
-    """The encoder variants against `base` on every (scenario, threshold) a variant was run at: recall@1 and
-    precision@6 with their intervals, and the paired bootstrap difference to `base` (same seeds, settings and
-    queries). Empty when the study has no variant cells. Columns `ABLATION_COLUMNS`."""
+                     base: str = "gcn", protocol: str = PAPER) -> pd.DataFrame:
+    """The encoder variants against `base` on every (scenario, threshold) a variant was run at, on one protocol
+    (default ``paper``): recall@1 and precision@6 with their intervals, and the paired bootstrap difference to
+    `base` (same seeds, settings and queries). Empty when the study has no variant cells. Columns
+    `ABLATION_COLUMNS`."""
+    qv, iv = only_protocol(_with_protocol(qv), protocol), only_protocol(_with_protocol(iv), protocol)
+    if qv.empty:
+        return pd.DataFrame(columns=ABLATION_COLUMNS)
     methods = _graph_methods(qv, study, base)
     variants = [m for m in methods if m != base]
     if not variants:
@@ -1077,7 +1272,7 @@ def encoder_ablation(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, study=
     combos = sorted({(sc, float(t)) for sc, t in zip(vq["scenario"], vq["threshold"])},
                     key=lambda st: (_natural_key(st[0]), st[1]))
     cols = _pick_cols(_metric_cols(qv))
-    ivx = iv.set_index(["method", "scenario", "threshold", "metric", "k"]).sort_index()
+    ivx = iv.drop(columns="protocol").set_index(["method", "scenario", "threshold", "metric", "k"]).sort_index()
     rows = []
     for m in methods:
         for sc, t in combos:
@@ -1096,7 +1291,7 @@ def encoder_ablation(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, study=
                     continue
                 r = ivx.loc[key_]
                 d = diffs.loc[(metric, k)] if (metric, k) in diffs.index else None
-                rows.append((m, _description(m, study), sc, t, metric, k, float(r["mean"]), float(r["ci_lo"]),
+                rows.append((m, _description(m, study), sc, t, protocol, metric, k, float(r["mean"]), float(r["ci_lo"]),
                              float(r["ci_hi"]), int(r["n_seeds"]),
                              *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
                                if d is not None else (np.nan, np.nan, np.nan, False))))
@@ -1154,24 +1349,27 @@ def dim_settings(study_name: str, study=None) -> Optional[dict[str, bool]]:
     return {str(s["name"]): bool(s.get("dim", False)) for s in io.read_json(f).get("settings", [])}
 
 
-LIGHT_COLUMNS = ["method", "scenario", "threshold", "light", "n_settings", "n_queries", "mean", "ci_lo", "ci_hi",
-                 "n_seeds"]
+LIGHT_COLUMNS = ["method", "scenario", "threshold", "protocol", "light", "n_settings", "n_queries", "mean", "ci_lo",
+                 "ci_hi", "n_seeds"]
 
 
 def light_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, dim_of: Mapping[str, bool],
-                scenarios: Optional[list[str]] = None, method: str = "gcn", k: int = 1) -> pd.DataFrame:
+                scenarios: Optional[list[str]] = None, method: str = "gcn", k: int = 1,
+                protocol: str = PAPER) -> pd.DataFrame:
     """recall@k of the queries of dim and of bright test settings: `method` on each scenario (default: every
     scenario it has) at that scenario's best threshold by mean recall@k (ties: the smallest), and every image
     baseline. Rows ``light`` = dim, bright and ``bright - dim`` (the difference of the two resampled means; the two
-    sets of settings are drawn independently, the seeds jointly). Columns `LIGHT_COLUMNS`."""
+    sets of settings are drawn independently, the seeds jointly). One protocol (default ``paper``). Columns
+    `LIGHT_COLUMNS`."""
     col = f"recall@{k}"
+    qv, iv = only_protocol(_with_protocol(qv), protocol), only_protocol(_with_protocol(iv), protocol)
     groups = []
     r = iv[(iv["method"] == method) & (iv["metric"] == "recall") & (iv["k"] == k)]
     for sc in sorted(r["scenario"].unique(), key=_natural_key):
         if scenarios is not None and sc not in scenarios:
             continue
         groups.append((method, sc, _best_threshold(r[r["scenario"] == sc].set_index("threshold")["mean"])))
-    for (m, sc, t) in qv[GROUP_KEYS].drop_duplicates().itertuples(index=False):
+    for (m, sc, t) in qv[["method", "scenario", "threshold"]].drop_duplicates().itertuples(index=False):
         if _is_image(m, sc):
             groups.append((m, sc, float(t)))
     rows = []
@@ -1184,19 +1382,19 @@ def light_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, dim_of: Map
         offset = 0
         for light, part in (("dim", g[dim.to_numpy()]), ("bright", g[~dim.to_numpy()])):
             if part.empty:
-                rows.append((m, sc, t, light, 0, 0, np.nan, np.nan, np.nan, 0))
+                rows.append((m, sc, t, protocol, light, 0, 0, np.nan, np.nan, np.nan, 0))
                 continue
             values, nq = boot.cube(part, [col])
             off = offset if offset + values.shape[1] <= boot.shape[1] else 0
             iv_ = boot.interval(values, nq, off)
             offset += values.shape[1]
             parts[light] = iv_
-            rows.append((m, sc, t, light, int(part["setting"].nunique()), len(part), float(iv_["mean"][0]),
+            rows.append((m, sc, t, protocol, light, int(part["setting"].nunique()), len(part), float(iv_["mean"][0]),
                          float(iv_["ci_lo"][0]), float(iv_["ci_hi"][0]), int(part["seed"].nunique())))
         if len(parts) == 2:
             d = parts["bright"]["boot"][:, 0] - parts["dim"]["boot"][:, 0]
             lo, hi = np.nanpercentile(d, [2.5, 97.5])
-            rows.append((m, sc, t, "bright - dim", int(g["setting"].nunique()), len(g),
+            rows.append((m, sc, t, protocol, "bright - dim", int(g["setting"].nunique()), len(g),
                          float(parts["bright"]["mean"][0] - parts["dim"]["mean"][0]), float(lo), float(hi),
                          int(g["seed"].nunique())))
     return pd.DataFrame(rows, columns=LIGHT_COLUMNS)
@@ -1249,17 +1447,18 @@ def fig_recall_by_light(table: pd.DataFrame, path: str | Path, method: str = "gc
     return io.save_figure(fig, path)
 
 
-DEPTH_COLUMNS = ["method", "depth", "semantic", "scenario", "depth_scale", "threshold", "mean", "ci_lo", "ci_hi",
-                 "n_seeds", "diff_vs_scale1", "diff_lo", "diff_hi", "significant"]
+DEPTH_COLUMNS = ["method", "depth", "semantic", "scenario", "depth_scale", "threshold", "protocol", "mean", "ci_lo",
+                 "ci_hi", "n_seeds", "diff_vs_scale1", "diff_lo", "diff_hi", "significant"]
 
 
 def depth_scale_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame,
-                      method: str = "gcn", k: int = 1) -> pd.DataFrame:
+                      method: str = "gcn", k: int = 1, protocol: str = PAPER) -> pd.DataFrame:
     """recall@k against the depth scale factor: the scenarios with ``depth_scale != 1`` and, per (depth,
     semantic) source pair, the scenario with the same sources and scale 1 (the one in the tables first), at
     every threshold `method` was run; with the paired difference to scale 1 at the same threshold. Empty when
-    the study has no scaled scenario. Columns `DEPTH_COLUMNS`."""
+    the study has no scaled scenario. One protocol (default ``paper``). Columns `DEPTH_COLUMNS`."""
     col = f"recall@{k}"
+    qv, iv = only_protocol(_with_protocol(qv), protocol), only_protocol(_with_protocol(iv), protocol)
     rows = []
     if info.empty:
         return pd.DataFrame(columns=DEPTH_COLUMNS)
@@ -1278,7 +1477,7 @@ def depth_scale_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info:
                 if ref and sc != ref and not _rows_of(qv, method, ref, t).empty:
                     dd = paired_difference(_rows_of(qv, method, sc, t), _rows_of(qv, method, ref, t), boot, [col])
                     d = dd.iloc[0] if len(dd) else None
-                rows.append((method, depth, semantic, sc, scale, t, float(row["mean"]), float(row["ci_lo"]),
+                rows.append((method, depth, semantic, sc, scale, t, protocol, float(row["mean"]), float(row["ci_lo"]),
                              float(row["ci_hi"]), int(row["n_seeds"]),
                              *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
                                if d is not None else (np.nan, np.nan, np.nan, False))))
@@ -1306,7 +1505,7 @@ def fig_recall_vs_depth_scale(table: pd.DataFrame, path: str | Path, k: int = 1,
             jitter = 1.0 + 0.012 * (i - (len(thresholds) - 1) / 2)
             ax.errorbar(h["depth_scale"] * jitter, h["mean"],
                         yerr=np.vstack([h["mean"] - h["ci_lo"], h["ci_hi"] - h["mean"]]), marker="o", capsize=3,
-                        color=colours(i / max(1, len(thresholds) - 1) * 0.9), label=f"t = {threshold_label(t)} m")
+                        color=colours(i / max(1, len(thresholds) - 1) * 0.9), label=f"t = {_metres(t)}")
         ax.set_xscale("log")
         ax.set_xticks(scales, [f"{s:g}" for s in scales])
         ax.minorticks_off()
@@ -1320,6 +1519,111 @@ def fig_recall_vs_depth_scale(table: pd.DataFrame, path: str | Path, k: int = 1,
     method = table["method"].iloc[0] if len(table) else "gcn"
     fig.suptitle(f"{method}: recall@{k} vs depth scale (error bars: 95% bootstrap intervals, B = {n_boot})",
                  fontsize=8)
+    return io.save_figure(fig, path)
+
+
+# ---- the two protocols side by side ----------------------------------------------------------------------------
+
+PROTOCOLS_COLUMNS = ["method", "scenario", "threshold", "protocol", "metric", "k", "mean", "ci_lo", "ci_hi",
+                     "n_seeds", "n_settings", "n_queries"]
+
+
+def protocols_table(qv: pd.DataFrame, iv: pd.DataFrame, hidden: frozenset | set = frozenset(), k: int = 1,
+                    base: str = PAPER) -> pd.DataFrame:
+    """recall@k of every method on every protocol, from the same cells: each graph method on each scenario in the
+    tables at the threshold with the best mean recall@k of the `base` protocol (ties: the smallest), every image
+    method; with the 95 % bootstrap interval of each protocol (its own resample: the two are not paired) and the
+    numbers of settings and queries behind it. Columns `PROTOCOLS_COLUMNS`."""
+    iv, qv = _with_protocol(iv), _with_protocol(qv)
+    r = iv[(iv["metric"] == "recall") & (iv["k"] == k) & ~iv["scenario"].isin(hidden)]
+    groups = []
+    for (m, sc), g in r.groupby(["method", "scenario"], sort=False):
+        b = g[g["protocol"] == base]
+        if b.empty:
+            continue
+        t = float(b["threshold"].iloc[0]) if _is_image(m, sc) else _best_threshold(b.set_index("threshold")["mean"])
+        groups.append((m, sc, t))
+    rows = []
+    for m, sc, t in groups:
+        for _, x in r[(r["method"] == m) & (r["scenario"] == sc) & (r["threshold"] == t)].iterrows():
+            q = _rows_of(qv, m, sc, t, x["protocol"])
+            n_set = int(q.groupby("seed")["setting"].nunique().max()) if len(q) else 0
+            n_q = int(q.groupby("seed").size().max()) if len(q) else 0
+            rows.append((m, sc, t, x["protocol"], "recall", k, float(x["mean"]), float(x["ci_lo"]), float(x["ci_hi"]),
+                         int(x["n_seeds"]), n_set, n_q))
+    out = pd.DataFrame(rows, columns=PROTOCOLS_COLUMNS)
+    if out.empty:
+        return out
+    out["_img"] = [int(_is_image(m, sc)) for m, sc in zip(out["method"], out["scenario"])]
+    return _sort(out, ["_img", "scenario", "method", "protocol"]).drop(columns="_img").reset_index(drop=True)
+
+
+def _group_name(m: str, sc: str, t: float, labels: Mapping[str, str] | None = None) -> str:
+    if _is_image(m, sc):
+        return f"{m}\n(RGB only)"
+    return f"{m}\n{sc}, t = {_metres(t)}"
+
+
+def protocols_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
+                       n_boot: int = N_BOOT) -> str:
+    """``protocols.md``: one row per method (and scenario), recall@k on each protocol with its interval."""
+    labels = dict(scenario_labels or {})
+    protos = protocols_in(table)
+    k = int(table["k"].iloc[0]) if len(table) else 1
+    sizes = {p: (int(g["n_settings"].max()), int(g["n_queries"].max())) for p, g in table.groupby("protocol")}
+    head = ["method", "data", "threshold (m)"] + [f"recall@{k} {p} ({sizes[p][0]} settings)" for p in protos]
+    lines = [f"**Recall@{k} on both protocols**, from the same trained encoders (cells). `paper`: test settings of "
+             f"different families (ai_VVV), the paper's protocol; `siblings`: pairs of settings of one family (same "
+             f"furniture and materials, another layout), where a query's candidates include its sibling's frames. "
+             f"Graph methods at the threshold with the best `paper` recall@{k} of their scenario. Mean over seeds "
+             f"[95% bootstrap interval, {n_boot} resamples of settings, queries and seeds; each protocol resampled "
+             f"on its own].", "",
+             "| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * len(protos)) + "|"]
+    for (m, sc, t), g in table.groupby(["method", "scenario", "threshold"], sort=False):
+        g = g.set_index("protocol")
+        image = _is_image(m, sc)
+        line = [m, "RGB only" if image else f"{sc}: {labels.get(sc, sc)}", "" if image else threshold_label(t)]
+        for p in protos:
+            line.append(f"{g.loc[p, 'mean']:.1f} {_fmt_ci(g.loc[p, 'ci_lo'], g.loc[p, 'ci_hi'])}" if p in g.index
+                        else "–")
+        lines.append("| " + " | ".join(line) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def fig_protocols(table: pd.DataFrame, path: str | Path, k: int = 1, n_boot: int = N_BOOT) -> Path:
+    """Bars: recall@k of each method (graph methods per scenario, at the best ``paper`` threshold) on each
+    protocol, from the same cells (`protocols_table`); error bars: 95 % bootstrap intervals."""
+    import matplotlib
+
+    groups = list(dict.fromkeys(zip(table["method"], table["scenario"], table["threshold"])))
+    protos = protocols_in(table)
+    fig = _figure(figsize=(max(5.2, 0.95 * len(groups) + 2.4), 3.9))
+    ax = fig.subplots()
+    width = 0.8 / max(1, len(protos))
+    colours = matplotlib.colormaps["tab10"]
+    for j, p in enumerate(protos):
+        xs, ys, err = [], [], [[], []]
+        for i, (m, sc, t) in enumerate(groups):
+            r = table[(table["method"] == m) & (table["scenario"] == sc) & (table["threshold"] == t)
+                      & (table["protocol"] == p)]
+            if r.empty:
+                continue
+            r = r.iloc[0]
+            xs.append(i + (j - (len(protos) - 1) / 2) * width)
+            ys.append(r["mean"])
+            err[0].append(max(0.0, r["mean"] - r["ci_lo"]))
+            err[1].append(max(0.0, r["ci_hi"] - r["mean"]))
+        n_set = sorted(set(table.loc[table["protocol"] == p, "n_settings"]))
+        ax.bar(xs, ys, width, yerr=np.asarray(err), capsize=2.5, color=colours(j),
+               label=f"{p} ({', '.join(str(int(n)) for n in n_set)} settings)", error_kw={"elinewidth": 1.0})
+    ax.set_xticks(range(len(groups)), [_group_name(m, sc, t) for m, sc, t in groups], fontsize=6.5)
+    ax.set_ylabel(f"recall@{k} (%)")
+    ax.set_ylim(0, 100)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.set_title(f"recall@{k} on both protocols, same trained encoders (graph methods at their best paper-protocol "
+                 f"threshold;\nerror bars: 95% bootstrap intervals, B = {n_boot}; siblings: pairs of settings of one "
+                 f"family)", fontsize=7.5)
     return io.save_figure(fig, path)
 
 
@@ -1345,17 +1649,24 @@ def write_report(study_name, rgb_of: Optional[RgbOf] = None,
                  n_boot: int = N_BOOT) -> dict[str, Path]:
     """Collect a study's cells and write into `monolib.paths.figures_dir(study)`:
 
-    - ``results.csv``: one row per (method, scenario, threshold, seed, metric, k) number;
-    - ``intervals.csv``: per (method, scenario, threshold, metric, k) the mean and its 95 % bootstrap interval over
-      test settings, queries and seeds (`intervals`, ``n_boot`` resamples, numpy seed 0);
-    - ``threshold_tests.csv``: each threshold against its scenario's best (`threshold_tests`);
-    - Table 1 and 2 (md, csv, tex) with the intervals and a dagger on thresholds significantly below the best;
-      scenarios with ``in_tables: false`` are left out of the tables and of ``recall_vs_threshold.png``;
+    - ``results.csv``: one row per (method, scenario, threshold, seed, protocol, metric, k) number;
+    - ``intervals.csv``: per (method, scenario, threshold, protocol, metric, k) the mean and its 95 % bootstrap
+      interval over test settings, queries and seeds (`intervals`, ``n_boot`` resamples, numpy seed 0, one
+      resample per protocol);
+    - ``threshold_tests.csv``: each threshold against its scenario's best (`threshold_tests`), per protocol;
+    - Table 1 and 2 (md, csv, tex) of the ``paper`` protocol with the intervals and a dagger on thresholds
+      significantly below the best, and the same tables of the ``siblings`` protocol (``table1_recall_siblings.*``,
+      ``table2_precision_siblings.*``) when the cells have it; scenarios with ``in_tables: false`` are left out of
+      the tables and of ``recall_vs_threshold.png``;
+    - ``fig_protocols.png`` + ``protocols.{csv,md}``: recall@1 of each method on both protocols (`protocols_table`;
+      when the cells have more than one protocol);
     - ``recall_vs_threshold.png`` (error bars: the intervals) and ``fig5_matches.png`` (skipped when `rgb_of` is
-      None or the study has no `method` cell);
-    - ``encoder_ablation.{md,csv}`` when the study has encoder variants;
-    - ``recall_by_light.png`` + ``light.csv`` when the dataset records dim settings (``monolib_synth.json``);
-    - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``.
+      None or the study has no `method` cell), ``paper`` protocol;
+    - ``encoder_ablation.{md,csv}`` when the study has encoder variants (``paper`` protocol);
+    - ``recall_by_light.png`` + ``light.csv`` when the dataset records dim settings (``monolib_synth.json``;
+      ``paper`` protocol);
+    - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``
+      (``paper`` protocol).
 
     `study_name` is a name or a loaded `monolib.params.Study`; `study` (default: ``params/<name>.yaml`` when it
     loads) gives variant descriptions, scenario information and the dataset folder. Labels default to the
@@ -1375,29 +1686,46 @@ def write_report(study_name, rgb_of: Optional[RgbOf] = None,
     written["results"] = out / "results.csv"
 
     try:
-        qv = query_table(study_name)
+        qv_all = query_table(study_name)
     except FileNotFoundError as exc:
         print(f"{study_name}: no per-query rankings, tables without intervals ({exc})")
-        qv = None
-    iv = tests = boot = None
-    if qv is not None:
-        boot = Bootstrap.for_queries(qv, n_boot)
-        iv = intervals(qv, boot)
-        tests = threshold_tests(qv, iv, boot)
-        io.write_text(out / "intervals.csv", _csv(iv))
+        qv_all = None
+    protos = protocols_in(results)
+    iv_all = tests = qv = iv = boot = None
+    if qv_all is not None:
+        ivs, tts, boots = [], [], {}
+        for p in protocols_in(qv_all):  # each protocol resampled on its own: nothing is paired across protocols
+            qp = only_protocol(qv_all, p)
+            boots[p] = Bootstrap.for_queries(qp, n_boot)
+            ivs.append(intervals(qp, boots[p]))
+            tts.append(threshold_tests(qp, ivs[-1], boots[p]))
+        iv_all = _sort(pd.concat(ivs, ignore_index=True), SUMMARY_KEYS)
+        tests = pd.concat(tts, ignore_index=True)
+        io.write_text(out / "intervals.csv", _csv(iv_all))
         written["intervals"] = out / "intervals.csv"
         io.write_text(out / "threshold_tests.csv", _csv(tests))
         written["threshold_tests"] = out / "threshold_tests.csv"
+        if PAPER in boots:  # the controlled comparisons below: the paper protocol
+            qv, iv, boot = only_protocol(qv_all, PAPER), only_protocol(iv_all, PAPER), boots[PAPER]
 
     info = scenario_info(study_name, study)
     hidden = set(info.loc[~info["in_tables"].astype(bool), "scenario"])
     in_tables = results[~results["scenario"].isin(hidden)]
-    written.update(write_tables(in_tables, out, labels, iv, tests, n_boot))
+    for p in protos:
+        written.update(write_tables(in_tables, out, labels, iv_all, tests, n_boot, protocol=p))
     written["recall_vs_threshold"] = fig_recall_vs_threshold(in_tables, out / "recall_vs_threshold.png", method,
-                                                             scenario_labels=labels, intervals=iv)
+                                                             scenario_labels=labels, intervals=iv_all)
     if rgb_of is not None and (in_tables["method"] == method).any():
         written["fig5_matches"] = fig_matches(study_name, rgb_of, out / "fig5_matches.png", method,
                                               results=in_tables, scenario_labels=labels)
+    if qv_all is not None and len(protocols_in(qv_all)) > 1:
+        table = protocols_table(qv_all, iv_all, hidden)
+        io.write_text(out / "protocols.csv", _csv(table))
+        io.write_text(out / "protocols.md", protocols_markdown(table, labels, n_boot))
+        written["protocols_csv"], written["protocols_md"] = out / "protocols.csv", out / "protocols.md"
+        written["fig_protocols"] = fig_protocols(table, out / "fig_protocols.png", n_boot=n_boot)
+    else:
+        print(f"{study_name}: one protocol only (protocol.siblings: 0): fig_protocols.png not drawn")
 
     if qv is None:
         log.info("report of %s written to %s", study_name, out)

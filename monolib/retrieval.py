@@ -1,12 +1,19 @@
 """The paper's evaluation protocol, nearest-neighbour retrieval and recall@k / precision@k.
 
 Per test setting, `queries` frames are queries and `positives` are positives (a seeded random draw). A query's
-candidates are its own setting's positives plus every frame of the other settings; its own setting's queries
-(itself included) are never candidates. Recall@k: share of queries with a frame of their setting in the top k.
-Precision@k: mean over queries of (frames of their setting in the top k) / k. Distances: Euclidean.
+candidates are its own setting's positives plus every frame of the protocol's other settings; its own setting's
+queries (itself included) are never candidates. Recall@k: share of queries with a frame of their setting in the
+top k. Precision@k: mean over queries of (frames of their setting in the top k) / k. Distances: Euclidean.
+
+Two protocols share the test frames and the trained encoders (`protocol_settings`): ``paper`` (`settings` test
+settings of as many different families, the paper's protocol) and ``siblings`` (`siblings` families of two
+settings each: same furniture and materials, another layout; the paper's "two neighbouring offices"). A setting's
+family is the ``ai_VVV`` part of its name (`family`), a Hypersim volume. Each protocol is drawn and evaluated on its
+own settings' frames only, with its own seed (`protocol_seed`).
 """
 from __future__ import annotations
 
+import zlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +21,57 @@ import pandas as pd
 import torch
 
 from monolib.params import Protocol
+
+
+PAPER, SIBLINGS = "paper", "siblings"
+PROTOCOLS = (PAPER, SIBLINGS)
+
+
+class ProtocolDataError(ValueError):
+    """The test data cannot provide a protocol (too few families, a family without a sibling, too few frames)."""
+
+
+def family(setting: str) -> str:
+    """The family of a setting: the ``ai_VVV`` part of ``ai_VVV_NNN`` (a Hypersim volume)."""
+    parts = str(setting).split("_")
+    return "_".join(parts[:2]) if len(parts) >= 3 else str(setting)
+
+
+def protocol_settings(settings, protocol: Protocol, where: str = "test split") -> dict[str, list[str]]:
+    """``{protocol: its settings (sorted)}`` chosen from `settings` (the test settings that hold enough frames).
+
+    ``paper``: the first setting (sorted by name) of each of the first `protocol.settings` families (sorted), so
+    every setting is of another family. ``siblings`` (when `protocol.siblings` > 0): the first `protocol.siblings`
+    families (sorted) holding at least 2 of the settings, their first two settings each. The rule only reads names,
+    and applied to the union of its own result it gives that result again (what a cell sees). Raises
+    `ProtocolDataError` naming what is missing."""
+    names = sorted(set(map(str, settings)))
+    fams: dict[str, list[str]] = {}
+    for n in names:
+        fams.setdefault(family(n), []).append(n)
+    out: dict[str, list[str]] = {}
+    if len(fams) < protocol.settings:
+        raise ProtocolDataError(
+            f"{where}: the paper protocol needs {protocol.settings} test settings of different families (ai_VVV) "
+            f"with >= {protocol.frames} frames (protocol.settings); found {len(fams)} families among "
+            f"{len(names)} such settings ({', '.join(sorted(fams)) or 'none'})")
+    out[PAPER] = sorted(fams[f][0] for f in sorted(fams)[: protocol.settings])
+    if protocol.siblings > 0:
+        pairs = [f for f in sorted(fams) if len(fams[f]) >= 2]
+        if len(pairs) < protocol.siblings:
+            single = [f for f in sorted(fams) if len(fams[f]) < 2]
+            raise ProtocolDataError(
+                f"{where}: the siblings protocol needs {protocol.siblings} families (ai_VVV) with 2 test settings of "
+                f">= {protocol.frames} frames each (protocol.siblings); found {len(pairs)} "
+                f"({', '.join(pairs) or 'none'}); families without a sibling: {', '.join(single) or 'none'}")
+        out[SIBLINGS] = sorted(n for f in pairs[: protocol.siblings] for n in fams[f][:2])
+    return out
+
+
+def protocol_seed(seed: int, name: str) -> int:
+    """The seed of a protocol's draw: derived from the cell seed and the protocol's name (deterministic)."""
+    ss = np.random.SeedSequence([int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())])
+    return int(ss.generate_state(1, np.uint32)[0])
 
 
 @dataclass
@@ -28,18 +86,20 @@ class Draw:
                              "role": np.where(self.is_query, "query", "positive")})
 
 
-def draw_protocol(frames: list[str], settings, protocol: Protocol, seed: int) -> Draw:
-    """Seeded draw of `protocol.queries` queries and `protocol.positives` positives per setting."""
+def draw_protocol(frames: list[str], settings, protocol: Protocol, seed: int, n_settings: int | None = None) -> Draw:
+    """Seeded draw of `protocol.queries` queries and `protocol.positives` positives per setting, over exactly
+    `n_settings` settings (default `protocol.settings`)."""
     settings = np.asarray(settings)
     rng = np.random.default_rng(seed)
     is_query = np.zeros(len(frames), bool)
     names = sorted(set(settings))
-    if len(names) != protocol.settings:
-        raise ValueError(f"protocol: {protocol.settings} test settings expected, got {len(names)}")
+    expected = protocol.settings if n_settings is None else n_settings
+    if len(names) != expected:
+        raise ProtocolDataError(f"protocol: {expected} test settings expected, got {len(names)}")
     for name in names:  # one loop over settings (16), not over queries
         idx = np.flatnonzero(settings == name)
         if len(idx) != protocol.frames:
-            raise ValueError(f"protocol: setting {name} has {len(idx)} frames, {protocol.frames} expected")
+            raise ProtocolDataError(f"protocol: setting {name} has {len(idx)} frames, {protocol.frames} expected")
         is_query[rng.permutation(idx)[: protocol.queries]] = True
     return Draw(list(frames), settings, is_query)
 
@@ -84,10 +144,46 @@ def metrics_from_hits(hits: np.ndarray, recall_k, precision_k) -> dict[str, floa
     return out
 
 
-def evaluate(embeddings, frames: list[str], settings, protocol: Protocol, seed: int):
-    """The whole protocol: (metrics dict in percent, rankings DataFrame, the Draw)."""
-    draw = draw_protocol(frames, settings, protocol, seed)
+def evaluate(embeddings, frames: list[str], settings, protocol: Protocol, seed: int, n_settings: int | None = None):
+    """One protocol on exactly these frames: (metrics dict in percent, rankings DataFrame, the Draw)."""
+    draw = draw_protocol(frames, settings, protocol, seed, n_settings)
     kmax = max(list(protocol.recall_k) + list(protocol.precision_k) + [10])
     q, idx, dist = rank(embeddings, draw, kmax)
     hits = draw.settings[idx] == draw.settings[q][:, None]
     return metrics_from_hits(hits, protocol.recall_k, protocol.precision_k), rankings_table(draw, q, idx, dist), draw
+
+
+@dataclass
+class ProtocolResult:
+    name: str                # paper | siblings
+    settings: list[str]      # the protocol's test settings
+    seed: int                # the seed of its draw (`protocol_seed`)
+    metrics: dict[str, float]
+    rankings: pd.DataFrame   # `rankings_table` with a leading ``protocol`` column
+    draw: Draw
+
+    def protocol_table(self) -> pd.DataFrame:
+        """The protocol's part of ``protocol.csv``: protocol, frame, setting, role."""
+        t = self.draw.table()
+        t.insert(0, "protocol", self.name)
+        return t
+
+
+def evaluate_protocols(embeddings, frames: list[str], settings, protocol: Protocol, seed: int) -> dict[str, ProtocolResult]:
+    """Every protocol of the study (``paper``; ``siblings`` when `protocol.siblings` > 0) on the embeddings of the test frames (the union of the
+    protocols' settings): each on its own settings' frames, with its own draw (`protocol_seed`)."""
+    emb = np.asarray(embeddings.numpy() if torch.is_tensor(embeddings) else embeddings, dtype=np.float32)
+    frames = list(frames)
+    settings = np.asarray(settings).astype(str)
+    if len(frames) != len(settings) or len(frames) != len(emb):
+        raise ValueError(f"evaluate_protocols: {len(frames)} frames, {len(settings)} settings, {len(emb)} embeddings")
+    chosen = protocol_settings(settings, protocol, "test frames")
+    out = {}
+    for name, names in chosen.items():
+        keep = np.isin(settings, names)
+        sd = protocol_seed(seed, name)
+        metrics, rankings, draw = evaluate(emb[keep], [f for f, k in zip(frames, keep) if k], settings[keep],
+                                           protocol, sd, n_settings=len(names))
+        rankings.insert(0, "protocol", name)
+        out[name] = ProtocolResult(name, list(names), sd, metrics, rankings, draw)
+    return out

@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import torch
 from torch_geometric.data import Data
 from tqdm.auto import tqdm
@@ -131,3 +132,107 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
 def load(study: Study, scenario: str, progress: bool = False) -> dict[str, list[Data]]:
     """{'train': [...], 'val': [...], 'test': [...]} complete graphs of a scenario (built when missing)."""
     return torch.load(build(study, scenario, progress), weights_only=False)["graphs"]
+
+
+# ---- graph sizes per scenario and threshold (what a threshold changes) ----------------------------------------
+
+SIZE_COLUMNS = ["scenario", "label", "threshold", "test_graphs", "test_nodes", "test_edges", "test_empty",
+                "train_graphs", "train_nodes", "train_edges", "same_graphs_as"]
+
+
+def identical_thresholds(pair_len: torch.Tensor, thresholds) -> dict[float, float]:
+    """``{threshold: the smallest threshold with identical graphs}`` for the thresholds whose graphs equal those of
+    a smaller one: no node pair (of `pair_len`, every pair of every graph) has a length between the two. Edges only
+    grow with the threshold, so equal edge totals mean equal graphs: the rule of `monolib.study.same_graphs`."""
+    from monolib.graph import pair_mask
+
+    out: dict[float, float] = {}
+    source, source_edges = None, -1
+    for t in sorted(set(float(t) for t in thresholds)):
+        edges = int(pair_mask(pair_len, t).sum())
+        if edges == source_edges:
+            out[t] = source
+        else:
+            source, source_edges = t, edges
+    return out
+
+
+def _scenario_thresholds(study: Study) -> dict[str, list[float]]:
+    """The thresholds each scenario's graph cells run at (every graph method of the grid)."""
+    from monolib import methods
+    from monolib.study import grid
+
+    out: dict[str, set] = {}
+    for c in grid(study):
+        if methods.kind(c.method, study) == "graph":
+            out.setdefault(c.scenario, set()).add(float(c.threshold))
+    return {sc: sorted(out[sc]) for sc in study.scenarios if sc in out}
+
+
+def graph_sizes(study: Study) -> pd.DataFrame:
+    """Nodes and edges per graph for each scenario and threshold of the study's grid: means over the test split's
+    graphs and over the training split's (training + validation settings); edges = node pairs joined (the encoder
+    reads each in both directions); ``test_empty``: test graphs without a node; ``same_graphs_as``: the smallest
+    threshold whose graphs (every split) are identical (`identical_thresholds`; NaN when none). Columns
+    `SIZE_COLUMNS`."""
+    from monolib.graph import pair_mask
+
+    rows = []
+    for sc, thresholds in _scenario_thresholds(study).items():
+        graphs = load(study, sc)
+        parts = {"test": graphs["test"], "train": graphs["train"] + graphs["val"]}
+        lengths = {k: torch.cat([g.pair_len for g in v] + [torch.zeros(0)]) for k, v in parts.items()}
+        same = identical_thresholds(torch.cat(list(lengths.values())), thresholds)
+        label = study.scenarios[sc].label or sc
+        for t in thresholds:
+            row = {"scenario": sc, "label": label, "threshold": t}
+            for k, v in parts.items():
+                n = max(len(v), 1)
+                row[f"{k}_graphs"] = len(v)
+                row[f"{k}_nodes"] = float(sum(int(g.num_nodes) for g in v)) / n
+                row[f"{k}_edges"] = float(pair_mask(lengths[k], t).sum()) / n
+            row["test_empty"] = int(sum(int(g.num_nodes) == 0 for g in parts["test"]))
+            row["same_graphs_as"] = same.get(t, float("nan"))
+            rows.append(row)
+    return pd.DataFrame(rows, columns=SIZE_COLUMNS)
+
+
+def graph_sizes_markdown(table: pd.DataFrame) -> str:
+    """``graph_sizes.md``: the table of `graph_sizes` for a reader."""
+    from monolib.report import threshold_label
+
+    lines = ["**Graph sizes.** Nodes and edges per scene graph for each scenario and edge threshold: means over the "
+             "test split's graphs and over the training split's (training and validation settings). An edge is a node "
+             "pair closer than the threshold (the encoder reads it in both directions); 0: no edges, the encoder sees "
+             "the nodes only; ∞: every pair. *Same graphs as*: a smaller threshold whose graphs are identical in every "
+             "frame of every split (no node pair has a length between the two): the study copies that threshold's "
+             "cells, so the threshold changes nothing.", "",
+             "| scenario | threshold (m) | nodes / graph (test) | edges / graph (test) | nodes / graph (train) "
+             "| edges / graph (train) | same graphs as |",
+             "|---|---|---:|---:|---:|---:|---|"]
+    prev = None
+    for r in table.itertuples(index=False):
+        first = r.scenario != prev
+        prev = r.scenario
+        same = "" if pd.isna(r.same_graphs_as) else threshold_label(float(r.same_graphs_as))
+        lines.append(f"| {f'{r.scenario}: {r.label}' if first else ''} | {threshold_label(float(r.threshold))} | "
+                     f"{r.test_nodes:.2f} | {r.test_edges:.2f} | {r.train_nodes:.2f} | {r.train_edges:.2f} | {same} |")
+    return "\n".join(lines) + "\n"
+
+
+def write_graph_sizes(study: Study, out_dir: Path | None = None) -> dict[str, Path]:
+    """Write ``graph_sizes.csv`` and ``graph_sizes.md`` (`graph_sizes`) into `out_dir` (default: the study's
+    figures folder, `monolib.paths.figures_dir`); nothing when the study has no graph method."""
+    from monolib import paths
+    from monolib.io import write_text
+
+    table = graph_sizes(study)
+    if table.empty:
+        return {}
+    out = Path(out_dir) if out_dir is not None else paths.figures_dir(study.name)
+    csv = table.copy()
+    csv["threshold"] = csv["threshold"].map(paths.threshold_tag)
+    csv["same_graphs_as"] = [("" if pd.isna(t) else paths.threshold_tag(t)) for t in csv["same_graphs_as"]]
+    write_text(out / "graph_sizes.csv", csv.to_csv(index=False, float_format="%.4g", lineterminator="\n"))
+    write_text(out / "graph_sizes.md", graph_sizes_markdown(table))
+    return {"graph_sizes_csv": out / "graph_sizes.csv", "graph_sizes_md": out / "graph_sizes.md"}

@@ -225,6 +225,10 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     if study.graph_methods():
         print(f"[3/5] graphs: {len(study.scenarios)} scenarios", flush=True)
         scenegraphs.build_all(study, list(study.scenarios), progress=progress)
+        scenegraphs.write_graph_sizes(study)  # graph_sizes.md / .csv: nodes and edges per scenario and threshold
+        from monolib import fidelity
+
+        fidelity.write(study)  # fidelity.md / .csv: the ground-truth graphs beside real Hypersim's statistics
     times["graphs_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -75,3 +75,24 @@ def test_triplet_cnn_training_loss_falls(smoke):
     loss = history["train_loss"].tolist()
     assert len(loss) == 4 and extra["epochs_run"] == 4 and state
     assert min(loss[1:]) < 0.8 * loss[0]
+
+
+def test_an_image_baseline_cell_evaluates_both_protocols(smoke, tmp_path):
+    """An image method's cell: one embedding of the test frames, evaluated on `paper` and `siblings`."""
+    import math
+
+    import pandas as pd
+
+    from monolib import cell, report
+
+    study, sel = smoke
+    rec = cell.run_cell(study, "color_hist", "rgb", math.inf, 0, out_dir=str(tmp_path / "cell"))
+    assert list(rec["metrics"]) == ["paper", "siblings"]
+    rankings = pd.read_csv(tmp_path / "cell" / "rankings.csv")
+    protocol = pd.read_csv(tmp_path / "cell" / "protocol.csv")
+    counts = report.check_protocols(rankings, protocol, study.protocol.positives,
+                                    {"paper": study.protocol.settings, "siblings": 2 * study.protocol.siblings})
+    assert counts["paper"]["queries"] == study.protocol.settings * study.protocol.queries
+    for name, r in report.split_protocols(rankings).items():
+        assert report.recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(rec["metrics"][name])
+    assert np.load(tmp_path / "cell" / "embeddings.npy").shape[0] == len(sel.test)

@@ -62,13 +62,17 @@ def test_training_lowers_the_loss_and_is_deterministic():
     {"pooling": "meanmax"},
     {"mining": "batch_hard"},
 ])
-def test_every_encoder_variant_trains_and_embeds(choice):
+@pytest.mark.parametrize("threshold", [1.5, 0.0])
+def test_every_encoder_variant_trains_and_embeds(choice, threshold):
+    """... at a threshold, and at 0 (no edges: the encoder sees the nodes only)."""
     import dataclasses
 
     spec = dataclasses.replace(GCNSpec(epochs=2, batch_size=8, patience=5), **choice)
     graphs = toy_graphs()
-    graphs = [at_threshold(complete_graph(g.x, g.pos, g.setting, g.frame), 1.5, spec.edges == "both") for g in graphs]
-    empty = at_threshold(complete_graph(np.zeros((0, 4)), np.zeros((0, 3)), "ai_900_009", "e"), 1.5)
+    graphs = [at_threshold(complete_graph(g.x, g.pos, g.setting, g.frame), threshold, spec.edges == "both")
+              for g in graphs]
+    assert (threshold == 0) == all(g.edge_index.shape[1] == 0 for g in graphs)
+    empty = at_threshold(complete_graph(np.zeros((0, 4)), np.zeros((0, 3)), "ai_900_009", "e"), threshold)
     result = train(graphs[:18], graphs[18:], spec, seed=0, threads=1)
     z = embed(result.model, graphs + [empty])
     assert z.shape == (len(graphs) + 1, result.model.out_channels) and torch.isfinite(z).all()

@@ -137,13 +137,13 @@ def test_a_frame_with_a_missing_file_becomes_an_empty_graph(tmp_path, monkeypatc
     from monolib.params import load_study
 
     root = tmp_path / "data"
-    for i, setting in enumerate(["ai_001_001", "ai_001_002", "ai_002_001", "ai_002_002", "ai_003_001", "ai_003_002"]):
+    for i, setting in enumerate(["ai_001_001", "ai_002_001", "ai_001_002", "ai_002_002", "ai_003_001", "ai_003_002"]):
         write_setting(root, setting, frames=2, split="test" if i < 2 else "train")
     (root / "ai_001_001" / "images" / "scene_cam_00_geometry_hdf5" / "frame.0001.depth_meters.hdf5").unlink()
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
     data.update(name="missing_files_test", scenarios={"s1": {"depth": "gt", "semantic": "gt"}})
     data["dataset"].update(source="hypersim", root=str(root), workers=1)
-    data["protocol"].update(settings=2, frames=2, queries=1, positives=1)
+    data["protocol"].update(settings=2, siblings=0, frames=2, queries=1, positives=1)
     data["gcn"].update(val_settings=1)
     p = tmp_path / "study.yaml"
     p.write_text(yaml.safe_dump(data))

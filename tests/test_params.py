@@ -17,7 +17,8 @@ def test_committed_studies_load(name):
 def test_quick_is_the_papers_protocol():
     s = load_study("quick")
     assert (s.protocol.settings, s.protocol.frames, s.protocol.queries, s.protocol.positives) == (16, 41, 35, 6)
-    assert s.thresholds == [1.0, 2.0, 5.0, 10.0, math.inf]
+    assert s.protocol.siblings == 8 and s.dataset.test_siblings == 8   # the siblings protocol: 8 families of 2
+    assert s.thresholds == [0.0, 1.0, 2.0, 5.0, 10.0, math.inf]        # 0: no edges
     assert len(s.scenarios) == 4 and len(s.seeds) >= 3
 
 
@@ -36,6 +37,10 @@ def write(tmp_path, change):
     (lambda d: d["protocol"].update(queries=99), "protocol.queries"),
     (lambda d: d["scenarios"]["s3"].update(depth="midas"), "scenarios.s3.depth"),
     (lambda d: d.update(thresholds=[-1]), "thresholds"),
+    (lambda d: d["scenarios"]["s2"].update(thresholds=[-0.5]), "scenarios.s2.thresholds"),
+    (lambda d: d["protocol"].update(siblings=-1), "protocol.siblings: expected 0"),
+    (lambda d: d["protocol"].update(siblings=3), "protocol.siblings: 3 families of 2 settings asked"),
+    (lambda d: d["dataset"].update(test_siblings=5), "dataset.test_siblings"),
     (lambda d: d.update(methods=["magic"]), "methods: unknown method 'magic'"),
     (lambda d: d["perception"]["depth"][0].update(checkpoint="/nope.pt", backbone="resnet50"), "perception.depth\\[0\\].checkpoint"),
     (lambda d: d.update(variants={"v": {"gcn": {"poolng": "max"}}}), "variants.v.gcn.poolng: unknown key"),
@@ -78,3 +83,14 @@ def test_an_extending_study_merges_key_by_key(tmp_path):
     assert list(s.variants) == ["gine", "ours"]
     assert s.variants["ours"].gcn == {"pooling": "meanmax"} and s.variants["ours"].thresholds is None
     assert load_study(base).variants["ours"].thresholds == [2.0]
+
+
+def test_threshold_zero_and_no_siblings_protocol_are_allowed(tmp_path):
+    """0 is a threshold (no edges); `protocol.siblings: 0` is a study with the paper protocol only (as the real-data
+    studies are)."""
+    s = load_study(write(tmp_path, lambda d: (d.update(thresholds=[0, 1]), d["protocol"].update(siblings=0))))
+    assert s.thresholds == [0.0, 1.0] and s.protocol.siblings == 0
+    assert paths.threshold_tag(0) == "0" and paths.threshold_tag(-0.0) == "0"
+    for name in ("paper", "published"):
+        assert load_study(name, check_files=False).protocol.siblings == 0
+    assert load_study("smoke").protocol.siblings == 2 and load_study("smoke").thresholds[0] == 0.0

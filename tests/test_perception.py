@@ -30,7 +30,7 @@ def make_tiny_dataset(root: Path, train: int = 4, test: int = 2, frames: int = 6
     """
     rng = np.random.default_rng(seed)
     rows = []
-    names = [(f"ai_001_{i + 1:03d}", "train") for i in range(train)] + [(f"ai_002_{i + 1:03d}", "test") for i in range(test)]
+    names = [(f"ai_001_{i + 1:03d}", "train") for i in range(train)] + [(f"ai_{i + 2:03d}_001", "test") for i in range(test)]
     for s, (setting, part) in enumerate(names):
         for k in range(frames):
             sem = np.ones((H, W), np.int16)
@@ -84,6 +84,7 @@ def tiny_study(tiny, tmp_path, monkeypatch):
     s.dataset.source, s.dataset.root = "hypersim", str(tiny)
     s.dataset.width, s.dataset.height, s.dataset.train_frames_per_setting = W, H, 6
     s.protocol.settings, s.protocol.frames, s.protocol.queries, s.protocol.positives = 2, 6, 4, 2
+    s.protocol.siblings = 0  # test settings of two families, no siblings
     s.perception.threads = 1
     seg = s.perception.segmentation
     seg.epochs, seg.batch_size, seg.train_height, seg.train_width, seg.val_settings = 2, 6, H, W, 1

@@ -70,12 +70,22 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
 
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
     result = cell.run_cell(s, "gcn", "s1", 2.0, 0, out_dir=str(tmp_path / "cell"))
-    assert set(result["metrics"]) == {"recall@1", "recall@5", "recall@10", "precision@2", "precision@4", "precision@6"}
+    assert list(result["metrics"]) == ["paper"]    # published.yaml: protocol.siblings 0, the paper protocol only
+    assert set(result["metrics"]["paper"]) == {"recall@1", "recall@5", "recall@10", "precision@2", "precision@4",
+                                               "precision@6"}
     assert (tmp_path / "cell" / "rankings.csv").exists()
+    # threshold 0: no edges, the encoder sees the nodes only; a negative threshold is one clear error
+    zero = cell.run_cell(s, "gcn", "s1", 0.0, 0, out_dir=str(tmp_path / "zero"))
+    assert zero["threshold"] == 0.0 and zero["test_edges_mean"] == 0.0 and zero["test_nodes_mean"] > 0
+    assert 0 <= zero["metrics"]["paper"]["recall@1"] <= 100
+    from monolib.params import StudyError
+
+    with pytest.raises(StudyError, match="threshold -1.0: expected 0 \\(no edges\\)"):
+        cell.run_cell(s, "gcn", "s1", -1.0, 0, out_dir=str(tmp_path / "negative"))
     # the study file's encoder variants run on published graphs too (label embedding, GINE on lengths, batch-hard)
     for method in ("ours", "gine", "batch_hard", "gcn_published"):
         r = cell.run_cell(s, method, "s1", 1.0, 0, out_dir=str(tmp_path / method))
-        assert r["method"] == method and 0 <= r["metrics"]["recall@1"] <= 100
+        assert r["method"] == method and 0 <= r["metrics"]["paper"]["recall@1"] <= 100
 
 
 SAMPLE = published.Path(__file__).resolve().parents[2] / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"
@@ -88,3 +98,25 @@ def test_the_real_published_sample():
     g = graphs[0]
     assert g.pair_index.shape[1] == g.num_nodes * (g.num_nodes - 1) // 2  # the release stores every pair once
     assert at_threshold(g, 1.0).edge_index.shape[1] < at_threshold(g, math.inf).edge_index.shape[1]
+
+
+def test_published_test_settings_follow_both_protocols(tmp_path):
+    """Published graphs are selected by the same rule as a dataset: paper = one setting per volume (family),
+    siblings = both settings of a volume; a volume with one setting cannot give a sibling pair."""
+    rng = np.random.default_rng(2)
+    write_folder(tmp_path / "graphs" / "train", [f"00{i}001" for i in range(1, 4)], 3, rng)
+    write_folder(tmp_path / "graphs" / "test", ["011001", "011002", "012001", "013001", "013002"], 4, rng)
+    from monolib import paths
+
+    study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
+    study.update(name="published_test", graphs_root=str(tmp_path / "graphs"))
+    study["protocol"].update(settings=3, siblings=1, frames=4, queries=3, positives=1)
+    study["gcn"].update(val_settings=1)
+    p = tmp_path / "study.yaml"
+    p.write_text(yaml.safe_dump(study))
+    test = published.select(load_study(p))["test"]
+    assert sorted({g.setting for g in test}) == ["ai_011_001", "ai_011_002", "ai_012_001", "ai_013_001"]
+    study["protocol"].update(siblings=3)
+    p.write_text(yaml.safe_dump(study))
+    with pytest.raises(ValueError, match="families without a sibling: ai_012"):
+        published.select(load_study(p))

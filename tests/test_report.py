@@ -466,3 +466,158 @@ def test_controlled_figures_skipped_with_a_note(study, capsys):
     assert "recall_vs_depth_scale" not in written and "depth_scale" in out
     assert "encoder_ablation_md" not in written
     assert written["intervals"].is_file() and written["threshold_tests"].is_file()
+
+
+# ---- two protocols: paper (settings of different families) and siblings (pairs of one family) ----------------------
+
+PAPER_SETTINGS = [f"ai_{i:03d}_001" for i in range(20, 26)]
+SIBLING_SETTINGS = ["ai_020_001", "ai_020_002", "ai_021_001", "ai_021_002"]
+P2 = {("gcn", "s1", 0.0): (0.3, 0.2), ("gcn", "s1", 1.0): (0.9, 0.4), ("gcn", "s1", math.inf): (0.5, 0.3),
+      ("color_hist", "rgb", math.inf): (0.6, 0.1)}
+
+
+def protocol_rows(settings, queries: int = 5) -> pd.DataFrame:
+    rows = [(key(s, i), s, "query") for s in settings for i in range(queries)]
+    rows += [(key(s, p), s, "positive") for s in settings for p in (90, 91)]
+    return pd.DataFrame(rows, columns=report.PROTOCOL_COLUMNS)
+
+
+def write_two_protocol_cell(study, method, scenario, threshold, seed):
+    parts, protos, metrics = [], [], {}
+    for name, settings, p in (("paper", PAPER_SETTINGS, P2[(method, scenario, threshold)][0]),
+                              ("siblings", SIBLING_SETTINGS, P2[(method, scenario, threshold)][1])):
+        r = draw_rankings(lambda s, i, sd: _u(method, scenario, threshold, name, s, i, sd) < p, seed, settings)
+        metrics[name] = report.recompute_metrics(r, [1, 5, 10], [2, 4, 6])
+        parts.append(r.assign(protocol=name)[["protocol"] + report.RANKING_COLUMNS])
+        protos.append(protocol_rows(settings).assign(protocol=name)[["protocol"] + report.PROTOCOL_COLUMNS])
+    d = paths.cell_dir(study, method, scenario, threshold, seed)
+    d.mkdir(parents=True)
+    pd.concat(parts).to_csv(d / "rankings.csv", index=False)
+    pd.concat(protos).to_csv(d / "protocol.csv", index=False)
+    (d / "cell.json").write_text(json.dumps({
+        "method": method, "scenario": scenario, "threshold": "inf" if math.isinf(threshold) else threshold,
+        "seed": seed, "study": study, "scenario_label": LABELS.get(scenario, "RGB only"), "metrics": metrics}))
+
+
+@pytest.fixture
+def two(tmp_path, monkeypatch):
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
+    for (m, sc, t) in P2:
+        for sd in (0, 1):
+            write_two_protocol_cell("two", m, sc, t, sd)
+    return "two"
+
+
+def test_results_and_intervals_have_a_protocol_column(two):
+    r = report.collect(two)
+    assert list(r.columns) == report.RESULT_COLUMNS and "protocol" in r.columns
+    assert set(r["protocol"]) == {"paper", "siblings"} and len(r) == len(P2) * 2 * 2 * 6
+    assert r["protocol"].iloc[0] == "paper"
+    qv = report.query_table(two)
+    assert list(qv.columns[:7]) == report.QUERY_KEYS
+    n = qv.groupby(["method", "scenario", "threshold", "seed", "protocol"])["setting"].nunique()
+    assert set(n.xs("paper", level="protocol")) == {6} and set(n.xs("siblings", level="protocol")) == {4}
+
+
+def test_every_number_recomputed_per_protocol_with_the_protocol_enforced(two):
+    written = report.write_report(two, n_boot=200)
+    results = pd.read_csv(written["results"])
+    for f in report.cell_files(two):
+        cell = json.loads(f.read_text())
+        rankings, protocol = pd.read_csv(f.parent / "rankings.csv"), pd.read_csv(f.parent / "protocol.csv")
+        counts = report.check_protocols(rankings, protocol, positives=2, settings={"paper": 6, "siblings": 4})
+        assert set(counts) == {"paper", "siblings"}
+        thr = float(cell["threshold"])
+        for name, r in report.split_protocols(rankings).items():
+            again = report.recompute_metrics(r, [1, 5, 10], [2, 4, 6])
+            rows = results[(results.method == cell["method"]) & (results.scenario == cell["scenario"])
+                           & (results.threshold == thr) & (results.seed == cell["seed"]) & (results.protocol == name)]
+            assert len(rows) == 6
+            for _, row in rows.iterrows():
+                assert row.value == pytest.approx(again[f"{row.metric}@{int(row.k)}"], abs=1e-3)
+    iv = pd.read_csv(written["intervals"])
+    assert list(iv.columns) == report.INTERVAL_COLUMNS and set(iv["protocol"]) == {"paper", "siblings"}
+    tests = pd.read_csv(written["threshold_tests"])
+    assert set(tests["protocol"]) == {"paper", "siblings"}
+
+
+def test_mixing_the_protocols_is_caught(two):
+    folder = paths.cell_dir(two, "gcn", "s1", 1.0, 0)
+    rankings, protocol = pd.read_csv(folder / "rankings.csv"), pd.read_csv(folder / "protocol.csv")
+    with pytest.raises(ValueError, match="protocols \\['paper', 'siblings'\\] together"):
+        report.recompute_metrics(rankings, [1], [2])
+    # a paper query that retrieves a frame of a setting only the siblings protocol has
+    bad = rankings.copy()
+    i = bad.index[(bad.protocol == "paper") & (bad["rank"] == 2)][0]
+    bad.loc[i, ["match", "match_setting"]] = [key("ai_020_002", 3), "ai_020_002"]
+    with pytest.raises(report.ProtocolError, match="not of the protocol's settings"):
+        report.check_protocols(bad, protocol)
+    # a paper protocol with two settings of one family; a siblings protocol with a family alone
+    moved, moved_rankings = (f.replace("ai_025_001", "ai_024_002", regex=True) for f in (protocol, rankings))
+    with pytest.raises(report.ProtocolError, match="settings of one family"):
+        report.check_protocols(moved_rankings, moved)
+    alone = protocol[~((protocol.protocol == "siblings") & (protocol.setting == "ai_021_002"))]
+    alone_r = rankings[~((rankings.protocol == "siblings") & ((rankings.query_setting == "ai_021_002")
+                                                              | (rankings.match_setting == "ai_021_002")))]
+    with pytest.raises(report.ProtocolError, match="without exactly 2 settings: \\['ai_021'\\]"):
+        report.check_protocols(alone_r, alone)
+    with pytest.raises(report.ProtocolError, match="protocol paper: 6 settings, 16 expected"):
+        report.check_protocols(rankings, protocol, settings={"paper": 16, "siblings": 4})
+
+
+def test_report_of_two_protocols(two):
+    written = report.write_report(two, fake_rgb, LABELS, n_boot=200)
+    out = paths.figures_dir(two)
+    for name in ("table1_recall", "table2_precision", "table1_recall_siblings", "table2_precision_siblings"):
+        for ext in ("md", "csv", "tex"):
+            assert (out / f"{name}.{ext}").is_file(), name
+    paper_md, sib_md = (out / "table1_recall.md").read_text(), (out / "table1_recall_siblings.md").read_text()
+    assert paper_md.startswith("**Table 1: Recall at k (%).** Protocol `paper`") and "paper k=1" in paper_md
+    assert sib_md.startswith("**Table 1: Recall at k (%), siblings protocol.** Protocol `siblings`")
+    assert "paper k=1" not in sib_md                       # the paper never ran the siblings protocol
+    assert "| 0 (no edges) |" in paper_md and "Threshold 0: no edges" in paper_md
+    assert r"\label{tab:table1_recall_siblings}" in (out / "table1_recall_siblings.tex").read_text()
+    assert r"ai\_VVV" in (out / "table1_recall.tex").read_text()
+    # recall@1 per table = the mean over seeds of results.csv for that protocol
+    res = pd.read_csv(written["results"])
+    for name, suffix in (("paper", ""), ("siblings", "_siblings")):
+        t = pd.read_csv(out / f"table1_recall{suffix}.csv")
+        row = t[(t.method == "gcn") & (t.threshold == 1.0) & (t.k == 1)].iloc[0]
+        want = res[(res.method == "gcn") & (res.threshold == 1.0) & (res.protocol == name) & (res.metric == "recall")
+                   & (res.k == 1)]["value"].mean()
+        assert row["mean"] == pytest.approx(want, abs=1e-3)
+    prot = pd.read_csv(written["protocols_csv"])
+    assert list(prot.columns) == report.PROTOCOLS_COLUMNS
+    g = prot[prot.method == "gcn"]
+    assert set(g["threshold"]) == {1.0} and list(g["protocol"]) == ["paper", "siblings"]   # best paper threshold
+    assert list(g["n_settings"]) == [6, 4]
+    assert set(prot["method"]) == {"gcn", "color_hist"}
+    assert "recall@1 siblings (4 settings)" in written["protocols_md"].read_text()
+    png = written["fig_protocols"].read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    again = report.write_report(two, fake_rgb, LABELS, n_boot=200)
+    assert again["fig_protocols"].read_bytes() == png                     # re-saving changes no byte
+    assert {k: p.read_bytes() for k, p in again.items()} == {k: p.read_bytes() for k, p in written.items()}
+
+
+def test_a_study_of_the_paper_protocol_only_has_no_protocols_figure(study, capsys):
+    written = report.write_report(study)
+    assert "fig_protocols" not in written and "table1_siblings_md" not in written
+    assert "one protocol only" in capsys.readouterr().out
+    assert set(pd.read_csv(written["results"])["protocol"]) == {"paper"}
+
+
+def test_paper_numbers_of_a_two_protocol_study_ignore_the_siblings(two, tmp_path, monkeypatch):
+    """The paper tables of a study with both protocols equal those of the same cells with the siblings removed."""
+    with_both = report.write_report(two, n_boot=200)
+    paper_md = with_both["table1_md"].read_text()
+    for f in report.cell_files(two):
+        cell = json.loads(f.read_text())
+        cell["metrics"] = cell["metrics"]["paper"]                         # a cell of one protocol (older format)
+        f.write_text(json.dumps(cell))
+        r = pd.read_csv(f.parent / "rankings.csv")
+        r[r.protocol == "paper"].drop(columns="protocol").to_csv(f.parent / "rankings.csv", index=False)
+    only = report.write_report(two, n_boot=200)
+    assert only["table1_md"].read_text() == paper_md
+    assert "table1_siblings_md" not in only

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pandas as pd
 import papermill
 import pytest
@@ -38,31 +39,49 @@ def test_smoke_study_writes_every_table_and_figure(smoke_study):
     fig = paths.figures_dir("smoke")
     for name in ["results.csv", "table1_recall.md", "table1_recall.tex", "table1_recall.csv", "table2_precision.md",
                  "table2_precision.tex", "table2_precision.csv", "recall_vs_threshold.png", "fig5_matches.png",
-                 "perception.csv"]:
+                 "perception.csv", "table1_recall_siblings.md", "table1_recall_siblings.tex",
+                 "table1_recall_siblings.csv", "table2_precision_siblings.md", "table2_precision_siblings.csv",
+                 "table2_precision_siblings.tex", "fig_protocols.png", "protocols.csv", "protocols.md",
+                 "graph_sizes.csv", "graph_sizes.md", "intervals.csv"]:
         assert (fig / name).is_file(), name
     results = pd.read_csv(fig / "results.csv")
     n_cells = len(s.scenarios) * len(s.thresholds) * len(s.seeds) * sum(m == "gcn" for m in s.methods)
-    assert len(results[results.method == "gcn"]) == n_cells * 6
+    assert len(results[results.method == "gcn"]) == n_cells * 6 * 2          # 6 numbers x 2 protocols
+    assert list(results.groupby("protocol").size().index) == ["paper", "siblings"]
+    assert "| 0 (no edges) |" in (fig / "table1_recall.md").read_text()
     assert "done: tables and figures in" in smoke_study.stdout
 
 
 def test_every_number_is_recomputed_from_its_rankings(smoke_study):
+    """Per protocol, with the protocol enforced: the paper protocol's settings are of different families, the
+    siblings protocol's are pairs of one family; every number of results.csv is its cell's rankings recomputed."""
+    from monolib.retrieval import family
+
     s = load_study("smoke")
     results = pd.read_csv(paths.figures_dir("smoke") / "results.csv")
     files = cell_files("smoke")
     assert files
+    shapes = {"paper": s.protocol.settings, "siblings": 2 * s.protocol.siblings}
+    checked = 0
     for f in files:
         cell = json.loads(f.read_text())
         rankings = pd.read_csv(f.parent / "rankings.csv")
         protocol = pd.read_csv(f.parent / "protocol.csv")
-        report.check_protocol(rankings, protocol, positives=s.protocol.positives)
-        again = report.recompute_metrics(rankings, s.protocol.recall_k, s.protocol.precision_k)
-        assert again == pytest.approx(cell["metrics"], abs=1e-9)
-        thr = math.inf if cell["threshold"] == "inf" else float(cell["threshold"])
-        rows = results[(results.method == cell["method"]) & (results.scenario == cell["scenario"])
-                       & (results.threshold == thr) & (results.seed == cell["seed"])]
-        for _, r in rows.iterrows():
-            assert r.value == pytest.approx(cell["metrics"][f"{r.metric}@{int(r.k)}"], abs=1e-3)  # csv: 4 decimals
+        report.check_protocols(rankings, protocol, positives=s.protocol.positives, settings=shapes)
+        paper = sorted(protocol[protocol.protocol == "paper"].setting.unique())
+        assert len({family(x) for x in paper}) == len(paper) == s.protocol.settings
+        assert cell["protocols"]["paper"]["settings"] == paper
+        thr = float(cell["threshold"])  # "inf" reads as inf
+        for name, r in report.split_protocols(rankings).items():
+            again = report.recompute_metrics(r, s.protocol.recall_k, s.protocol.precision_k)
+            assert again == pytest.approx(cell["metrics"][name], abs=1e-9)
+            rows = results[(results.method == cell["method"]) & (results.scenario == cell["scenario"])
+                           & (results.threshold == thr) & (results.seed == cell["seed"]) & (results.protocol == name)]
+            assert len(rows) == len(again)
+            for _, row in rows.iterrows():
+                assert row.value == pytest.approx(again[f"{row.metric}@{int(row.k)}"], abs=1e-3)  # csv: 4 decimals
+                checked += 1
+    assert checked == len(results)
 
 
 def test_rerun_recomputes_nothing(smoke_study):
@@ -147,15 +166,18 @@ def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path, 
     cell = json.loads((out / "cell.json").read_text())
     assert cell["threshold"] == 3.7 and cell["seed"] == 11 and cell["method"] == "gcn"
     rankings = pd.read_csv(out / "rankings.csv")
-    assert list(rankings.columns) == ["query", "query_setting", "rank", "match", "match_setting", "distance"]
+    assert list(rankings.columns) == ["protocol", "query", "query_setting", "rank", "match", "match_setting", "distance"]
     s = load_study("smoke")
-    assert rankings["rank"].max() == 10 and len(rankings) == 10 * s.protocol.settings * s.protocol.queries
-    assert report.recompute_metrics(rankings, [1, 5, 10], [2, 4, 6]) == pytest.approx(cell["metrics"])
+    n_settings = s.protocol.settings + 2 * s.protocol.siblings
+    assert rankings["rank"].max() == 10 and len(rankings) == 10 * n_settings * s.protocol.queries
+    for name, r in report.split_protocols(rankings).items():
+        assert report.recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(cell["metrics"][name])
     # same study, scenario, threshold and seed: the same numbers (determinism)
     from monolib.cell import run_cell
 
     again = run_cell(s, "gcn", "s2", 3.7, 11, out_dir=str(tmp_path / "again"))
-    assert again["metrics"] == pytest.approx(cell["metrics"])
+    for name in ("paper", "siblings"):
+        assert again["metrics"][name] == pytest.approx(cell["metrics"][name])
     # infinity passes through papermill too
     papermill.execute_notebook(str(paths.NOTEBOOKS / "ablation_cell.ipynb"), str(tmp_path / "inf.ipynb"),
                                parameters={"threshold": math.inf, "seed": 11, "out_dir": str(tmp_path / "inf")},
@@ -217,3 +239,63 @@ def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_pat
     assert "nothing to do" in capsys.readouterr().out
     # the scene graphs do not depend on the GCN either
     assert all(scenegraphs.graphs_path(s, sc) == scenegraphs.graphs_path(load_study("smoke"), sc) for sc in s.scenarios)
+
+
+def test_threshold_zero_gives_graphs_without_edges_and_cells_that_run(smoke_study):
+    from monolib import scenegraphs
+    from monolib.graph import at_threshold
+    from monolib.study import grid, same_graphs
+
+    s = load_study("smoke")
+    assert s.thresholds[0] == 0.0
+    zero = [json.loads(f.read_text()) for f in cell_files("smoke")]
+    zero = [c for c in zero if float(c["threshold"]) == 0.0]
+    assert sorted(c["scenario"] for c in zero) == sorted(s.scenarios)
+    for c in zero:
+        assert c["test_edges_mean"] == 0.0 and c["test_nodes_mean"] > 0 and not c.get("same_graphs_as")
+        assert set(c["metrics"]) == {"paper", "siblings"}
+        assert 0.0 <= c["metrics"]["paper"]["recall@1"] <= 100.0
+        assert (paths.cell_dir("smoke", "gcn", c["scenario"], 0, 0) / "model.pt").is_file()
+    for split in scenegraphs.load(s, "s1").values():
+        for g in split:
+            assert at_threshold(g, 0.0).edge_index.shape[1] == 0 and at_threshold(g, 0.0).num_nodes == g.num_nodes
+    # a copied cell's source has the same graphs: never 0 unless the copy has no edge either
+    sizes = pd.read_csv(paths.figures_dir("smoke") / "graph_sizes.csv", dtype={"threshold": str})
+    for name, source in same_graphs(s, grid(s)).items():
+        scenario, thr = name.split("/")[1].split("__t")[0], name.split("__t")[1].split("__")[0]
+        if source.threshold == 0.0:
+            row = sizes[(sizes.scenario == scenario) & (sizes.threshold == thr)].iloc[0]
+            assert row["test_edges"] == 0 and row["train_edges"] == 0
+
+
+def test_graph_sizes_table_of_the_smoke_study(smoke_study):
+    """graph_sizes.csv: every scenario x threshold of the grid; nodes do not depend on the threshold, edges grow
+    with it (0 at 0, every pair at inf), the means are those of the cached graphs, and `same_graphs_as` is the
+    runner's rule (`study.same_graphs`)."""
+    import torch
+
+    from monolib import scenegraphs
+    from monolib.study import grid, same_graphs
+
+    s = load_study("smoke")
+    fig = paths.figures_dir("smoke")
+    sizes = pd.read_csv(fig / "graph_sizes.csv", dtype={"threshold": str, "same_graphs_as": str}, keep_default_na=False)
+    assert list(sizes.columns) == scenegraphs.SIZE_COLUMNS
+    assert len(sizes) == len(s.scenarios) * len(s.thresholds)
+    assert list(sizes[sizes.scenario == "s1"]["threshold"]) == [paths.threshold_tag(t) for t in s.thresholds]
+    copies = same_graphs(s, grid(s))
+    for sc, g in sizes.groupby("scenario", sort=False):
+        graphs = scenegraphs.load(s, sc)
+        test, train = graphs["test"], graphs["train"] + graphs["val"]
+        assert g["test_graphs"].tolist() == [len(test)] * len(g) and g["train_graphs"].tolist() == [len(train)] * len(g)
+        assert g["test_nodes"].iloc[0] == pytest.approx(np.mean([x.num_nodes for x in test]), rel=1e-3)
+        assert g["train_nodes"].nunique() == 1 and g["test_nodes"].nunique() == 1
+        assert g["test_edges"].iloc[0] == 0 and g["train_edges"].iloc[0] == 0          # threshold 0: no edges
+        assert (np.diff(g["test_edges"]) >= 0).all() and (np.diff(g["train_edges"]) >= 0).all()
+        pairs = np.mean([x.num_nodes * (x.num_nodes - 1) / 2 for x in test])
+        assert g["test_edges"].iloc[-1] == pytest.approx(pairs, rel=1e-3)              # inf: every pair
+        for t, same in zip(g["threshold"], g["same_graphs_as"]):
+            name = f"gcn/{sc}__t{t}__s0"
+            assert same == (paths.threshold_tag(copies[name].threshold) if name in copies else ""), name
+    md = (fig / "graph_sizes.md").read_text()
+    assert md.startswith("**Graph sizes.**") and "| 0 (no edges) |" in md
