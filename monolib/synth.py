@@ -124,7 +124,7 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
     """
     u = rng.uniform
 
-    def paint(sat_hi=0.55, v=(0.45, 0.95)) -> Material:
+    def paint(sat_hi=0.65, v=(0.3, 0.95)) -> Material:
         # a third of the paints are near-neutral (white, grey, beige), the rest carry a colour
         sat = u(0.0, 0.08) if u() < 0.33 else u(0.1, sat_hi)
         return Material(PAINT, _hsv(u(0, 1), sat, u(*v)), seed=u(0, 100))
@@ -153,6 +153,7 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
     m: dict[str, Material] = {}
     r = u()
     m["wall"] = paint() if r < 0.8 else (wood((0.35, 0.8)) if r < 0.9 else stone())
+    m["wall2"] = paint()  # a feature wall (half of the families paint one wall differently)
     m["ceiling"] = Material(PAINT, _hsv(u(0.05, 0.15), u(0.0, 0.08), u(0.8, 0.95)), seed=3.0)
     if room in ("kitchen", "bathroom"):
         m["floor"] = tiles() if u() < 0.75 else stone()
@@ -676,8 +677,10 @@ def make_family(seed: int, index: int, room: str) -> Family:
     chair_dims = tuple(float(rng.uniform(a, b)) for a, b in zip(*CATALOGUE["chair"][2]))
     items.append(("chair", chair_dims, {}))  # the family's chair model (the layout decides how many)
     wall_key = ["wall"] * 4
+    if rng.uniform() < 0.5:
+        wall_key[int(rng.integers(4))] = "wall2"
     return Family(index, room, (W, D, H), mats, items, wall_key, temp, int(rng.integers(1, 4)),
-                  float(rng.uniform(1.5, 3.0)), bool(rng.uniform() < 0.85), skirting=bool(rng.uniform() < 0.5),
+                  float(rng.uniform(2.5, 6.0)), bool(rng.uniform() < 0.85), skirting=bool(rng.uniform() < 0.5),
                   pendant=float(rng.uniform(0.3, 0.9)) if rng.uniform() < 0.5 else 0.0,
                   clutter=float(rng.uniform(0.3, 1.0)))
 
@@ -949,7 +952,7 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
         items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2 - drop, 0.2, 0.14), "shade"),
                                                           (_cyl(0, 0, -0.06 - drop, 0.01, 0.06 + drop), "metal")])],
                           0.3, 0.3, 0.2, float(pos[0]), float(pos[1]), 0.0, H))
-    ambient = rgb * (0.22 if not dim else 0.015)
+    ambient = rgb * (0.12 if not dim else 0.015)
     window_emission = np.array([0.9, 1.0, 1.2]) * (fam.window_level if not dim else 0.04)
     return Layout(W, D, H, items, rects, lights, ambient, window_emission, openings)
 
@@ -1130,16 +1133,23 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int)
         i, j = int(p[0] / res), int(p[1] / res)
         return 0 <= i < nx and 0 <= j < ny and bool(free[i, j])
 
-    # the part of the room the cameras dwell on: a piece of furniture (larger ones more often) and its neighbours
+    # the part of the room the cameras dwell on: a piece of furniture (larger ones more often) and its neighbours;
+    # a second scene looks at the same part or, half of the time, at another one
     things = [it for it in lay.items if it.kind not in ("ceiling_lamp", "floormat")]
     weight = np.array([max(0.1, it.w * it.d) for it in things]) ** 0.5
-    anchor = things[int(rng.choice(len(things), p=weight / weight.sum()))]
-    near = np.array([[it.x, it.y] for it in things if math.hypot(it.x - anchor.x, it.y - anchor.y) < 2.0])
-    focus = 0.5 * (near.mean(axis=0) + np.array([anchor.x, anchor.y]))
+
+    def part_of_room() -> np.ndarray:
+        anchor = things[int(rng.choice(len(things), p=weight / weight.sum()))]
+        near = np.array([[it.x, it.y] for it in things if math.hypot(it.x - anchor.x, it.y - anchor.y) < 2.0])
+        return 0.5 * (near.mean(axis=0) + np.array([anchor.x, anchor.y]))
+
+    focus = part_of_room()
     scenes = []
     fi, fj = np.nonzero(free)
-    dist = np.hypot(gx[fi] - focus[0], gy[fj] - focus[1])
-    for n in counts:
+    for c, n in enumerate(counts):
+        if c > 0 and rng.uniform() < 0.5:
+            focus = part_of_room()
+        dist = np.hypot(gx[fi] - focus[0], gy[fj] - focus[1])
         ring = np.flatnonzero((dist > 1.8) & (dist < 4.0))
         k = int(rng.choice(ring)) if len(ring) else int(np.argmax(dist))
         p = np.array([gx[fi[k]], gy[fj[k]]]) + rng.uniform(-0.04, 0.04, 2)
@@ -1164,7 +1174,7 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int)
         # the gaze: the focus plus a slow wander (two sines per axis) at the scene's own height
         t = np.linspace(0, 1, n)
         wander = np.stack([a * np.sin(2 * math.pi * f * t + ph) for a, f, ph in
-                           zip(rng.uniform(0.3, 0.8, 3) * np.array([1, 1, 0.4]), rng.uniform(0.3, 1.0, 3),
+                           zip(rng.uniform(0.4, 1.2, 3) * np.array([1, 1, 0.3]), rng.uniform(0.3, 1.0, 3),
                                rng.uniform(0, 2 * math.pi, 3))], axis=1)
         looks = np.c_[np.broadcast_to(focus, (n, 2)), np.full(n, rng.uniform(0.4, 2.1))] + wander
         reach = np.maximum(np.linalg.norm(looks[:, :2] - eyes[:, :2], axis=1), 0.5)  # pitch within -25..+22 degrees
