@@ -60,7 +60,6 @@ def same_graphs(study: Study, cells: list[CellSpec]) -> dict[str, CellSpec]:
     import torch
 
     from monolib import scenegraphs
-    from monolib.graph import pair_mask
 
     groups: dict[tuple, list[CellSpec]] = {}
     for c in cells:
@@ -72,14 +71,9 @@ def same_graphs(study: Study, cells: list[CellSpec]) -> dict[str, CellSpec]:
         if scenario not in lengths:
             graphs = scenegraphs.load(study, scenario)
             lengths[scenario] = torch.cat([g.pair_len for split in graphs.values() for g in split] + [torch.zeros(0)])
-        pair_len = lengths[scenario]
-        source, source_edges = None, -1
-        for c in sorted(group, key=lambda c: c.threshold):
-            edges = int(pair_mask(pair_len, c.threshold).sum())
-            if edges == source_edges:
-                out[c.name] = source
-            else:
-                source, source_edges = c, edges
+        by_threshold = {float(c.threshold): c for c in group}
+        for t, source in scenegraphs.identical_thresholds(lengths[scenario], by_threshold).items():
+            out[by_threshold[t].name] = by_threshold[source]
     return out
 
 
@@ -191,7 +185,7 @@ def write_run_record(study: Study, times: dict, path: Path) -> None:
 
 def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
     """All stages of a study, each skipped when its results exist. Returns timings per stage."""
-    from monolib import dataset, scenegraphs
+    from monolib import dataset, fidelity, scenegraphs
 
     check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})
     check_notebook_parameters(REPORT_NOTEBOOK, {"study"})
@@ -226,8 +220,6 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
         print(f"[3/5] graphs: {len(study.scenarios)} scenarios", flush=True)
         scenegraphs.build_all(study, list(study.scenarios), progress=progress)
         scenegraphs.write_graph_sizes(study)  # graph_sizes.md / .csv: nodes and edges per scenario and threshold
-        from monolib import fidelity
-
         fidelity.write(study)  # fidelity.md / .csv: the ground-truth graphs beside real Hypersim's statistics
     times["graphs_s"] = time.perf_counter() - t
 
