@@ -71,7 +71,7 @@ class GraphEncoder(nn.Module):
 
     def forward(self, batch: Batch) -> torch.Tensor:
         h = self.features(batch.x)
-        length = batch.edge_attr if batch.edge_attr is not None else torch.zeros((batch.edge_index.shape[1], 1))
+        length = batch.edge_attr if batch.edge_attr is not None else batch.x.new_zeros((batch.edge_index.shape[1], 1))
         for i, conv in enumerate(self.convs):
             if self.spec.conv in ("gine", "gatv2"):
                 h = conv(h, batch.edge_index, length)
@@ -131,10 +131,10 @@ def batch_hard_batches(settings: np.ndarray, batch_size: int, rng: np.random.Gen
 
 def batch_hard_loss(z: torch.Tensor, settings: np.ndarray, margin: float) -> torch.Tensor:
     """Triplet loss with the hardest positive and the hardest negative of each anchor within the batch."""
-    codes = torch.as_tensor(np.unique(settings, return_inverse=True)[1])
+    codes = torch.as_tensor(np.unique(settings, return_inverse=True)[1], device=z.device)
     d = torch.cdist(z, z)
     same = codes[:, None] == codes[None, :]
-    eye = torch.eye(len(z), dtype=torch.bool)
+    eye = torch.eye(len(z), dtype=torch.bool, device=z.device)
     hardest_pos = d.masked_fill(~same | eye, float("-inf")).amax(dim=1)
     hardest_neg = d.masked_fill(same, float("inf")).amin(dim=1)
     ok = torch.isfinite(hardest_pos) & torch.isfinite(hardest_neg)

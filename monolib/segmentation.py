@@ -54,7 +54,8 @@ def resize_nearest(a: np.ndarray, height: int, width: int) -> np.ndarray:
 
 def normalise(x_uint8: torch.Tensor) -> torch.Tensor:
     """(N, 3, H, W) uint8 (or float 0..255) -> ImageNet-normalised float."""
-    return (x_uint8.float() / 255.0 - MEAN) / STD
+    x = x_uint8.float() / 255.0
+    return (x - MEAN.to(x.device)) / STD.to(x.device)  # the constants live on the CPU; the images may not
 
 
 def to_batch(rgb: np.ndarray | Sequence[np.ndarray]) -> torch.Tensor:

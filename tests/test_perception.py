@@ -134,6 +134,16 @@ def test_depth_loss_falls(tiny_study):
     assert pred.dtype == np.float32 and pred.shape == (2, H, W) and np.isfinite(pred).all() and (pred > 0).all()
 
 
+def test_normalise_stays_on_the_device_of_its_input():
+    """The ImageNet constants are built on the CPU at import; images on another device (a GPU, here the `meta`
+    device, which fails on any mix of devices) must not meet them there (the crash seen on a GPU)."""
+    from monolib import segmentation
+
+    x = torch.zeros((2, 3, 8, 8), dtype=torch.uint8, device="meta")
+    out = segmentation.normalise(x)
+    assert out.device.type == "meta" and out.shape == (2, 3, 8, 8) and out.dtype == torch.float32
+
+
 def test_depth_loss_masks_nan():
     from monolib.depth import depth_loss
 
