@@ -123,6 +123,10 @@ class Variant:
     description: str = ""
 
 
+PAPER, SIBLINGS = "paper", "siblings"  # the test protocols: the paper's, and pairs of sibling settings
+PROTOCOLS = (PAPER, SIBLINGS)          # in table order
+
+
 @dataclass
 class Protocol:
     """The evaluation protocols; both are drawn from the same test frames and evaluated on the same encoders.

@@ -48,6 +48,8 @@ import numpy as np
 import pandas as pd
 
 from monolib import io, paths
+from monolib.params import PAPER, SIBLINGS  # the test protocols (monolib.params: no torch import here)
+from monolib.params import PROTOCOLS as PROTOCOL_ORDER
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +57,6 @@ INF = math.inf
 METRICS = ("recall", "precision")
 RESULT_COLUMNS = ["method", "scenario", "threshold", "seed", "protocol", "metric", "k", "value"]
 SUMMARY_KEYS = ["method", "scenario", "threshold", "protocol", "metric", "k"]
-PAPER, SIBLINGS = "paper", "siblings"   # the protocols (`monolib.retrieval.PROTOCOLS`), in table order
-PROTOCOL_ORDER = (PAPER, SIBLINGS)
 RANKING_COLUMNS = ["query", "query_setting", "rank", "match", "match_setting", "distance"]
 PROTOCOL_COLUMNS = ["frame", "setting", "role"]
 IMAGE_SCENARIO = "rgb"          # the scenario name image-only baselines are written under

@@ -20,11 +20,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib.params import Protocol
-
-
-PAPER, SIBLINGS = "paper", "siblings"
-PROTOCOLS = (PAPER, SIBLINGS)
+from monolib.params import PAPER, SIBLINGS, Protocol
 
 
 class ProtocolDataError(ValueError):
