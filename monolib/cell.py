@@ -122,20 +122,6 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     return record
 
 
-def metrics_of(record: dict, protocol: str = "paper") -> dict[str, float]:
-    """A cell's metrics for one protocol; a cell written before the protocols were two (flat ``metrics``) holds
-    the ``paper`` protocol only."""
-    m = record["metrics"]
-    if any(isinstance(v, dict) for v in m.values()):
-        if protocol not in m:
-            raise KeyError(f"cell {record.get('method')}/{record.get('scenario')}: no {protocol!r} protocol "
-                           f"(has {', '.join(m)})")
-        return m[protocol]
-    if protocol != "paper":
-        raise KeyError(f"cell {record.get('method')}/{record.get('scenario')}: only the 'paper' protocol")
-    return m
-
-
 def copy_cell(source: Path, folder: Path, threshold: float, source_name: str) -> dict:
     """The results of the cell in `source` as those of `threshold` (the two have identical scene graphs): its files
     copied, `cell.json` with this threshold and ``same_graphs_as`` naming the source (written last, as always)."""

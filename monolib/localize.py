@@ -19,11 +19,11 @@ import pandas as pd
 import torch
 
 from monolib import gcn, graph, paths, perception, scenegraphs
-from monolib.cell import metrics_of
 from monolib.graph import scene_nodes
 from monolib.hypersim import Camera
 from monolib.io import atomic_path, read_json, write_json, write_text
-from monolib.params import Study, load_study
+from monolib.params import PAPER, Study, load_study
+from monolib.report import cell_metrics
 
 
 class LocalizeError(RuntimeError):
@@ -66,7 +66,7 @@ def pick_cell(study: Study, method: str | None = None) -> dict:
             continue
         if not (f.parent / "model.pt").is_file():
             continue
-        if best is None or metrics_of(c)["recall@1"] > metrics_of(best[0])["recall@1"]:  # the paper protocol
+        if best is None or cell_metrics(c)[PAPER]["recall@1"] > cell_metrics(best[0])[PAPER]["recall@1"]:
             best = (c, f.parent)
     if best is None:
         raise LocalizeError(f"{paths.study_dir(study.name) / 'cells'}: no finished {method or 'graph-method'} cell with "
@@ -97,7 +97,7 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     write_json(out / "meta.json", {
         "study": study.name, "study_file": study.path, "cell": c["folder"], "method": c["method"],
         "scenario": c["scenario"],
-        "threshold": c["threshold"], "seed": c["seed"], "cell_recall@1": metrics_of(c)["recall@1"],
+        "threshold": c["threshold"], "seed": c["seed"], "cell_recall@1": cell_metrics(c)[PAPER]["recall@1"],
         "models": {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)},
         "width": study.dataset.width, "height": study.dataset.height, "frames": len(test),
     })
