@@ -759,16 +759,43 @@ def _overlaps(r, rects, pad=0.05):
     return False
 
 
-def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout:
-    rng = np.random.default_rng([seed, 104729, setting_index])
-    W, D, H = fam.size
-    orng = np.random.default_rng([seed, 7919, fam.index, 1])  # doors and windows: shared by the family
-    items: list[Item] = []
-    rects: list = []
-    wall_used: dict[int, list] = {w: [] for w in range(4)}  # intervals along each wall taken by mounts/windows
-    openings = []
+@dataclass
+class _Draft:
+    """A layout in progress: the room, the setting's random numbers and what is placed so far."""
+    W: float
+    D: float
+    H: float
+    rng: np.random.Generator
+    items: list = field(default_factory=list)  # Item
+    rects: list = field(default_factory=list)  # floor footprints taken (obstacles)
+    high_rects: list = field(default_factory=list)  # footprints of high wall units
+    wall_used: dict = field(default_factory=lambda: {w: [] for w in range(4)})  # intervals along each wall taken
+    openings: list = field(default_factory=list)  # (wall, s0, s1, z0, z1, kind)
+    chair_anchors: list = field(default_factory=list)  # (item, "front1": one chair in front | "around": a table)
 
-    # doors and windows
+
+def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout:
+    """One setting of a family, step by step: the family's doors and windows, the furniture (classroom rows of
+    desks, then the family's items from the largest footprint down: against a wall, mounted on a wall, or free on
+    the floor), small props on the surfaces, chairs at the desks and tables, and the lights. The steps draw from
+    one generator of the setting in this order."""
+    W, D, H = fam.size
+    draft = _Draft(W, D, H, np.random.default_rng([seed, 104729, setting_index]))
+    _place_openings(draft, fam, np.random.default_rng([seed, 7919, fam.index, 1]))  # shared by the family
+    furniture = [it for it in fam.items if it[0] != "chair"]
+    order = sorted(range(len(furniture)), key=lambda i: -furniture[i][1][0] * furniture[i][1][1])
+    _place_desk_rows(draft, [furniture[i] for i in order if CATALOGUE[furniture[i][0]][1] == "grid"])
+    for i in order:
+        _place_furniture(draft, *furniture[i])
+    _place_props(draft, fam)
+    _place_chairs(draft, [it[1] for it in fam.items if it[0] == "chair"][0])
+    lights, ambient, window_emission = _place_lights(draft, fam, seed, dim)
+    return Layout(W, D, H, draft.items, draft.rects, lights, ambient, window_emission, draft.openings)
+
+
+def _place_openings(draft: _Draft, fam: Family, orng: np.random.Generator) -> None:
+    """Doors (their swing kept free on the floor) and windows on the walls, from the family's generator `orng`."""
+    W, D, H = draft.W, draft.D, draft.H
     n_doors = 1 + int(orng.uniform() < 0.25)
     n_windows = int(orng.integers(0 if fam.room == "bathroom" else 1, 3 if min(W, D) > 3.5 else 2))
     for kind, n in (("door", n_doors), ("window", n_windows)):
@@ -778,149 +805,176 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
                 o, t, nrm, L = _wall_frame(w, W, D)
                 ow = orng.uniform(0.8, 0.95) if kind == "door" else orng.uniform(0.9, min(2.2, L - 0.8))
                 s0 = orng.uniform(0.3, L - ow - 0.3) if L - ow - 0.6 > 0 else None
-                if s0 is None or any(s0 < b + 0.2 and a < s0 + ow + 0.2 for a, b in wall_used[w]):
+                if s0 is None or any(s0 < b + 0.2 and a < s0 + ow + 0.2 for a, b in draft.wall_used[w]):
                     continue
-                wall_used[w].append((s0, s0 + ow))
+                draft.wall_used[w].append((s0, s0 + ow))
                 if kind == "door":
                     z0, z1 = 0.0, 2.05
                     c = o + t * (s0 + ow / 2) + nrm * 0.5
-                    rects.append(_footprint(c[0], c[1], w * math.pi / 2, ow + 0.2, 1.0))  # keep the swing free
+                    draft.rects.append(_footprint(c[0], c[1], w * math.pi / 2, ow + 0.2, 1.0))  # keep the swing free
                 else:
                     z0 = orng.uniform(0.8, 1.0)
                     z1 = min(H - 0.25, z0 + orng.uniform(1.1, 1.6))
-                openings.append((w, s0, s0 + ow, z0, z1, kind))
+                draft.openings.append((w, s0, s0 + ow, z0, z1, kind))
                 break
 
-    def mount_ok(w, s0, s1, z0, z1, tall_ok=True):
-        for (ww, a, b, oz0, oz1, _k) in openings:
-            if ww == w and s0 < b + 0.1 and a < s1 + 0.1 and z0 < oz1 and oz0 < z1:
-                return False
-        return True
 
-    def place_wall(kind, dims, high=False, z0=0.0):
-        w_, d_, h_ = dims
-        for _try in range(60):
-            w = int(rng.integers(4))
-            o, t, nrm, L = _wall_frame(w, W, D)
-            if L < w_ + 0.1:
-                continue
-            s = rng.uniform(w_ / 2 + 0.05, L - w_ / 2 - 0.05)
-            zz0 = z0 if not high else rng.uniform(1.3, min(1.7, H - h_ - 0.1))
-            if not mount_ok(w, s - w_ / 2, s + w_ / 2, zz0, zz0 + h_ + (0.0 if high else 0.0)):
-                continue
-            c = o + t * s + nrm * (d_ / 2 + 0.02)
-            yaw = w * math.pi / 2
-            fp = _footprint(c[0], c[1], yaw, w_, d_)
-            if not high and _overlaps(fp, rects):
-                continue
-            if high and _overlaps(fp, [r for r in high_rects]):
-                continue
-            return Item(kind, [], w_, d_, h_, float(c[0]), float(c[1]), yaw, zz0), fp
-        return None, None
+def _clear_of_openings(draft: _Draft, w: int, s0: float, s1: float, z0: float, z1: float) -> bool:
+    """Whether the span [s0, s1] x [z0, z1] of wall w keeps clear of its doors and windows."""
+    for (ww, a, b, oz0, oz1, _k) in draft.openings:
+        if ww == w and s0 < b + 0.1 and a < s1 + 0.1 and z0 < oz1 and oz0 < z1:
+            return False
+    return True
 
-    high_rects: list = []
-    fam_items = [it for it in fam.items if it[0] != "chair"]
-    chair_dims = [it[1] for it in fam.items if it[0] == "chair"][0]
-    order = sorted(range(len(fam_items)), key=lambda i: -fam_items[i][1][0] * fam_items[i][1][1])
-    chair_anchors = []  # (item, kind)
-    grid_items = [fam_items[i] for i in order if CATALOGUE[fam_items[i][0]][1] == "grid"]
-    if grid_items:  # classroom: rows of student desks facing the whiteboard wall
-        dims = grid_items[0][1]
-        n = len(grid_items)
-        cols = max(1, int((W - 1.6) // (dims[0] + 0.5)))
-        yaw0 = math.pi  # face wall 0 (-y)
-        jitter = rng.uniform(-0.3, 0.3, 2)
-        for k in range(n):
-            r_, c_ = divmod(k, cols)
-            x = 0.8 + dims[0] / 2 + c_ * (dims[0] + 0.5) + jitter[0] + rng.uniform(-0.08, 0.08)
-            y = 2.4 + r_ * (dims[1] + 0.9) + jitter[1]
-            fp = _footprint(x, y, yaw0, dims[0], dims[1])
-            if fp[2] > W - 0.4 or fp[3] > D - 0.6 or fp[0] < 0.3 or _overlaps(fp, rects):
-                continue
-            it = Item("student_desk", b_desk(dims, {}), *dims, x=x, y=y, yaw=yaw0 + rng.normal(0, 0.04))
-            items.append(it)
-            rects.append(fp)
-            chair_anchors.append((it, "front1"))
-    for i in order:
-        kind, dims, extra = fam_items[i]
-        how = CATALOGUE[kind][1]
-        it, fp = None, None
-        if how == "grid":
+
+def _place_desk_rows(draft: _Draft, grid_items: list) -> None:
+    """Classroom: rows of student desks facing the whiteboard wall (wall 0, -y), a chair in front of each."""
+    if not grid_items:
+        return
+    rng, W, D = draft.rng, draft.W, draft.D
+    dims = grid_items[0][1]
+    n = len(grid_items)
+    cols = max(1, int((W - 1.6) // (dims[0] + 0.5)))
+    yaw0 = math.pi  # face wall 0 (-y)
+    jitter = rng.uniform(-0.3, 0.3, 2)
+    for k in range(n):
+        r_, c_ = divmod(k, cols)
+        x = 0.8 + dims[0] / 2 + c_ * (dims[0] + 0.5) + jitter[0] + rng.uniform(-0.08, 0.08)
+        y = 2.4 + r_ * (dims[1] + 0.9) + jitter[1]
+        fp = _footprint(x, y, yaw0, dims[0], dims[1])
+        if fp[2] > W - 0.4 or fp[3] > D - 0.6 or fp[0] < 0.3 or _overlaps(fp, draft.rects):
             continue
-        if how in ("wall", "wall_high"):
-            it, fp = place_wall(kind, dims, high=(how == "wall_high"))
-            if it is not None:
-                (high_rects if how == "wall_high" else rects).append(fp)
-                if kind == "desk":
-                    chair_anchors.append((it, "front1"))
-        elif how == "mount":
-            zlo, zhi = MOUNT_Z[kind]
-            for _try in range(60):
-                w = int(rng.integers(4))
-                o, t, nrm, L = _wall_frame(w, W, D)
-                if L < dims[0] + 0.2:
-                    continue
-                s = rng.uniform(dims[0] / 2 + 0.1, L - dims[0] / 2 - 0.1)
-                z0 = rng.uniform(zlo, zhi)
-                if z0 + dims[2] > H - 0.1 or not mount_ok(w, s - dims[0] / 2, s + dims[0] / 2, z0, z0 + dims[2]):
-                    continue
-                if any(a < s + dims[0] / 2 + 0.1 and s - dims[0] / 2 < b + 0.1 for a, b in wall_used[w]):
-                    continue
-                # not behind tall furniture
-                c = o + t * s + nrm * 0.05
-                fp = _footprint(c[0], c[1], w * math.pi / 2, dims[0], 0.1)
-                tall = [(_footprint(q.x, q.y, q.yaw, q.w, q.d), q) for q in items if q.h > z0 - 0.05]
-                if _overlaps(fp, [r for r, _q in tall], pad=0.0) or _overlaps(fp, high_rects, pad=0.0):
-                    continue
-                wall_used[w].append((s - dims[0] / 2, s + dims[0] / 2))
-                it = Item(kind, [], *dims, x=float(c[0] - nrm[0] * 0.05), y=float(c[1] - nrm[1] * 0.05),
-                          yaw=w * math.pi / 2, z0=z0)
-                fp = None
-                break
-        elif how in ("centre", "free", "corner", "floor"):
-            for _try in range(80):
-                if how == "corner":
-                    cx = rng.choice([0.35, W - 0.35])
-                    cy = rng.choice([0.35, D - 0.35])
-                    yaw = 0.0
-                else:
-                    m = 0.9 if how == "centre" else 0.6
-                    cx, cy = rng.uniform(m, W - m), rng.uniform(m, D - m)
-                    yaw = (rng.integers(4) * math.pi / 2 if how != "free" else rng.uniform(0, 2 * math.pi))
-                    yaw += rng.normal(0, 0.05)
-                fp = _footprint(cx, cy, yaw, dims[0], dims[1])
-                if fp[0] < 0.05 or fp[1] < 0.05 or fp[2] > W - 0.05 or fp[3] > D - 0.05:
-                    continue
-                if how != "floor" and _overlaps(fp, rects, pad=0.5 if how == "centre" else 0.15):
-                    continue
-                if how == "floor" and _overlaps(fp, [_footprint(q.x, q.y, q.yaw, q.w, q.d) for q in items
-                                                     if q.kind == "floormat"]):
-                    continue
-                if how == "free":  # armchair: face the room centre
-                    yaw = math.atan2(-(W / 2 - cx), (D / 2 - cy))
-                it = Item(kind, [], *dims, x=float(cx), y=float(cy), yaw=float(yaw))
-                if kind in ("table", "dining_table"):
-                    chair_anchors.append((it, "around"))
-                break
-            if it is not None and how != "floor":
-                rects.append(fp)
-        if it is not None:
-            it.objs = CATALOGUE[kind][0](dims, {}) if kind != "picture" else w_picture(dims, {}, extra["mat"])
-            items.append(it)
+        it = Item("student_desk", b_desk(dims, {}), *dims, x=x, y=y, yaw=yaw0 + rng.normal(0, 0.04))
+        draft.items.append(it)
+        draft.rects.append(fp)
+        draft.chair_anchors.append((it, "front1"))
 
-    for it in items:  # small props and table lamps on the surfaces (the clutter of real rooms)
+
+def _place_furniture(draft: _Draft, kind: str, dims: tuple, extra: dict) -> None:
+    """One of the family's items, placed the way its catalogue entry says (grid items are `_place_desk_rows`')."""
+    how = CATALOGUE[kind][1]
+    if how in ("wall", "wall_high"):
+        it = _place_against_wall(draft, kind, dims, high=(how == "wall_high"))
+    elif how == "mount":
+        it = _mount_on_wall(draft, kind, dims)
+    elif how in ("centre", "free", "corner", "floor"):
+        it = _place_on_floor(draft, kind, dims, how)
+    else:
+        it = None
+    if it is not None:
+        it.objs = CATALOGUE[kind][0](dims, {}) if kind != "picture" else w_picture(dims, {}, extra["mat"])
+        draft.items.append(it)
+
+
+def _place_against_wall(draft: _Draft, kind: str, dims: tuple, high: bool = False) -> Optional[Item]:
+    """A unit standing against a wall (`high`: hung above the floor, 1.3-1.7 m), clear of the doors and windows
+    and of the floor footprints (`high`: of the other high units); a desk gets a chair anchor."""
+    rng, W, D, H = draft.rng, draft.W, draft.D, draft.H
+    w_, d_, h_ = dims
+    for _try in range(60):
+        w = int(rng.integers(4))
+        o, t, nrm, L = _wall_frame(w, W, D)
+        if L < w_ + 0.1:
+            continue
+        s = rng.uniform(w_ / 2 + 0.05, L - w_ / 2 - 0.05)
+        z0 = 0.0 if not high else rng.uniform(1.3, min(1.7, H - h_ - 0.1))
+        if not _clear_of_openings(draft, w, s - w_ / 2, s + w_ / 2, z0, z0 + h_):
+            continue
+        c = o + t * s + nrm * (d_ / 2 + 0.02)
+        yaw = w * math.pi / 2
+        fp = _footprint(c[0], c[1], yaw, w_, d_)
+        if _overlaps(fp, draft.high_rects if high else draft.rects):
+            continue
+        it = Item(kind, [], w_, d_, h_, float(c[0]), float(c[1]), yaw, z0)
+        (draft.high_rects if high else draft.rects).append(fp)
+        if kind == "desk":
+            draft.chair_anchors.append((it, "front1"))
+        return it
+    return None
+
+
+def _mount_on_wall(draft: _Draft, kind: str, dims: tuple) -> Optional[Item]:
+    """A flat thing on a wall (picture, whiteboard, mirror, towel) at its catalogue height, clear of the doors and
+    windows, of other mounted things and of the furniture in front of it."""
+    rng, W, D, H = draft.rng, draft.W, draft.D, draft.H
+    zlo, zhi = MOUNT_Z[kind]
+    for _try in range(60):
+        w = int(rng.integers(4))
+        o, t, nrm, L = _wall_frame(w, W, D)
+        if L < dims[0] + 0.2:
+            continue
+        s = rng.uniform(dims[0] / 2 + 0.1, L - dims[0] / 2 - 0.1)
+        z0 = rng.uniform(zlo, zhi)
+        if z0 + dims[2] > H - 0.1 or not _clear_of_openings(draft, w, s - dims[0] / 2, s + dims[0] / 2, z0,
+                                                            z0 + dims[2]):
+            continue
+        if any(a < s + dims[0] / 2 + 0.1 and s - dims[0] / 2 < b + 0.1 for a, b in draft.wall_used[w]):
+            continue
+        # not behind tall furniture
+        c = o + t * s + nrm * 0.05
+        fp = _footprint(c[0], c[1], w * math.pi / 2, dims[0], 0.1)
+        tall = [_footprint(q.x, q.y, q.yaw, q.w, q.d) for q in draft.items if q.h > z0 - 0.05]
+        if _overlaps(fp, tall, pad=0.0) or _overlaps(fp, draft.high_rects, pad=0.0):
+            continue
+        draft.wall_used[w].append((s - dims[0] / 2, s + dims[0] / 2))
+        return Item(kind, [], *dims, x=float(c[0] - nrm[0] * 0.05), y=float(c[1] - nrm[1] * 0.05),
+                    yaw=w * math.pi / 2, z0=z0)
+    return None
+
+
+def _place_on_floor(draft: _Draft, kind: str, dims: tuple, how: str) -> Optional[Item]:
+    """A free-standing piece: ``centre`` (kept well away from the rest), ``free`` (an armchair facing the room
+    centre), ``corner``, or ``floor`` (a floor mat: under the furniture, never on another mat). Tables get chair
+    anchors around them."""
+    rng, W, D = draft.rng, draft.W, draft.D
+    for _try in range(80):
+        if how == "corner":
+            cx = rng.choice([0.35, W - 0.35])
+            cy = rng.choice([0.35, D - 0.35])
+            yaw = 0.0
+        else:
+            m = 0.9 if how == "centre" else 0.6
+            cx, cy = rng.uniform(m, W - m), rng.uniform(m, D - m)
+            yaw = (rng.integers(4) * math.pi / 2 if how != "free" else rng.uniform(0, 2 * math.pi))
+            yaw += rng.normal(0, 0.05)
+        fp = _footprint(cx, cy, yaw, dims[0], dims[1])
+        if fp[0] < 0.05 or fp[1] < 0.05 or fp[2] > W - 0.05 or fp[3] > D - 0.05:
+            continue
+        if how != "floor" and _overlaps(fp, draft.rects, pad=0.5 if how == "centre" else 0.15):
+            continue
+        if how == "floor" and _overlaps(fp, [_footprint(q.x, q.y, q.yaw, q.w, q.d) for q in draft.items
+                                             if q.kind == "floormat"]):
+            continue
+        if how == "free":  # armchair: face the room centre
+            yaw = math.atan2(-(W / 2 - cx), (D / 2 - cy))
+        it = Item(kind, [], *dims, x=float(cx), y=float(cy), yaw=float(yaw))
+        if kind in ("table", "dining_table"):
+            draft.chair_anchors.append((it, "around"))
+        if how != "floor":
+            draft.rects.append(fp)
+        return it
+    return None
+
+
+def _place_props(draft: _Draft, fam: Family) -> None:
+    """Small props and table lamps on the surfaces (the clutter of real rooms)."""
+    for it in draft.items:
         if it.kind in SURFACES:
-            it.objs += _props_on(it, fam, rng)
+            it.objs += _props_on(it, fam, draft.rng)
 
-    # chairs: in front of desks, around tables
+
+def _place_chairs(draft: _Draft, chair_dims: tuple) -> None:
+    """The family's chair in front of each desk and around each table (some seats left empty), where it fits."""
+    rng, W, D = draft.rng, draft.W, draft.D
     cw, cd, ch = chair_dims
-    for anchor, mode in chair_anchors:
+    for anchor, mode in draft.chair_anchors:
         R = _rot(anchor.yaw)[:2, :2]
         if mode == "front1":
             spots = [(0.0, anchor.d / 2 + 0.15, math.pi)]
         else:
             spots = [(sx * anchor.w / 4, sy * (anchor.d / 2 + 0.2), (0 if sy < 0 else math.pi)) for sx in (-1, 1)
                      for sy in (-1, 1)] + [(sx * (anchor.w / 2 + 0.2), 0.0, sx * -math.pi / 2) for sx in (-1, 1)]
+        anchor_fp = _footprint(anchor.x, anchor.y, anchor.yaw, anchor.w, anchor.d)
         for lx, ly, lyaw in spots:
             if mode == "around" and rng.uniform() < 0.3:
                 continue
@@ -930,32 +984,37 @@ def make_layout(fam: Family, seed: int, setting_index: int, dim: bool) -> Layout
             fp = _footprint(p[0], p[1], yaw, cw, cd)
             if fp[0] < 0.05 or fp[1] < 0.05 or fp[2] > W - 0.05 or fp[3] > D - 0.05:
                 continue
-            if _overlaps(fp, [r for r in rects if not _overlaps(r, [_footprint(anchor.x, anchor.y, anchor.yaw, anchor.w, anchor.d)], -0.01)], pad=0.02):
+            if _overlaps(fp, [r for r in draft.rects if not _overlaps(r, [anchor_fp], -0.01)], pad=0.02):
                 continue
-            items.append(Item("chair", b_chair(chair_dims, {}), cw, cd, ch, float(p[0]), float(p[1]), float(yaw)))
-            rects.append(fp)
+            draft.items.append(Item("chair", b_chair(chair_dims, {}), cw, cd, ch, float(p[0]), float(p[1]),
+                                    float(yaw)))
+            draft.rects.append(fp)
 
-    # lights: 1-3 ceiling lights (dim settings: one weak warm lamp-like light)
-    # the fixtures are the family's (same positions and colour); a dim setting has only one, weak, light on
+
+def _place_lights(draft: _Draft, fam: Family, seed: int, dim: bool) -> tuple[list, np.ndarray, np.ndarray]:
+    """(lights, ambient, window emission): the family's ceiling fixtures (same positions and colour in every
+    setting; their lamps are items), all on in a bright setting, one weak one in a dim setting (and dusk at the
+    windows)."""
+    W, D, H = draft.W, draft.D, draft.H
     lrng = np.random.default_rng([seed, 7919, fam.index, 2])
     n_lights = 1 if dim else fam.n_lights
     temp = fam.temp
     rgb = np.array([1.0, 0.85 + 0.12 * temp, 0.65 + 0.35 * temp])
     lights = []
-    level = rng.uniform(0.9, 1.1) * (0.25 if dim else 1.0)
+    level = draft.rng.uniform(0.9, 1.1) * (0.25 if dim else 1.0)
     for k in range(fam.n_lights):
         pos = np.array([lrng.uniform(0.25, 0.75) * W, lrng.uniform(0.25, 0.75) * D, H - 0.25])
         power = lrng.uniform(4.0, 6.0) * (W * D / 20.0) ** 0.5 / fam.n_lights ** 0.5
         if k < n_lights:
             lights.append((pos, rgb * level * power))
         drop = fam.pendant  # a pendant hangs on a cord into the view; a flush fixture stays at the ceiling
-        items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2 - drop, 0.2, 0.14), "shade"),
-                                                          (_cyl(0, 0, -0.06 - drop, 0.01, 0.06 + drop), "metal")])],
-                          0.3, 0.3, 0.2, float(pos[0]), float(pos[1]), 0.0, H))
+        draft.items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2 - drop, 0.2, 0.14), "shade"),
+                                                                (_cyl(0, 0, -0.06 - drop, 0.01, 0.06 + drop),
+                                                                 "metal")])],
+                                0.3, 0.3, 0.2, float(pos[0]), float(pos[1]), 0.0, H))
     ambient = rgb * (0.12 if not dim else 0.015)
     window_emission = np.array([0.9, 1.0, 1.2]) * (fam.window_level if not dim else 0.04)
-    return Layout(W, D, H, items, rects, lights, ambient, window_emission, openings)
-
+    return lights, ambient, window_emission
 
 # =============================================================================================================
 # the mesh of a setting
@@ -1358,8 +1417,10 @@ def _camera_proj(s: dict, width: int, height: int) -> np.ndarray:
 
 def _setting_key(s: dict, study) -> dict:
     ds = study.dataset
-    return {"version": FORMAT_VERSION, "seed": int(study.seed), "width": int(ds.width), "height": int(ds.height),
-            "family_size": int(ds.family_size), "setting": s}
+    from monolib.versions import code_version
+
+    return {"version": FORMAT_VERSION, "code": code_version("dataset"), "seed": int(study.seed),
+            "width": int(ds.width), "height": int(ds.height), "family_size": int(ds.family_size), "setting": s}
 
 
 def build_setting(s: dict, seed: int):
@@ -1508,7 +1569,7 @@ def _finished(final: Path, key: dict) -> Optional[dict]:
 
 def render_dataset(study, out_dir, progress: bool = True) -> Path:
     """Render every setting of `study` into `out_dir` in Hypersim's layout (resumable, deterministic)."""
-    from tqdm import tqdm
+    from monolib.progress import tqdm
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -5,6 +5,7 @@ import ast
 import hashlib
 import json
 import math
+import re
 
 import numpy as np
 import pandas as pd
@@ -14,7 +15,7 @@ import matplotlib
 
 matplotlib.use("agg")
 
-from monolib import paths, report  # noqa: E402
+from monolib import figures, paths, report, results, statistics, tables  # noqa: E402
 
 A, B, C = "ai_001_001", "ai_001_002", "ai_002_001"
 
@@ -41,92 +42,101 @@ HAND = {
 
 def rankings_of(table: dict[str, list[str]]) -> pd.DataFrame:
     rows = [(q, q.split("/")[0], r, m, m.split("/")[0], 0.1 * r) for q, ms in table.items() for r, m in enumerate(ms, 1)]
-    return pd.DataFrame(rows, columns=report.RANKING_COLUMNS)
+    return pd.DataFrame(rows, columns=results.RANKING_COLUMNS)
 
 
 def hand_protocol() -> pd.DataFrame:
     rows = [(key(A, 0), A, "query"), (key(A, 1), A, "query"), (key(A, 9), A, "positive"),
             (key(B, 0), B, "query"), (key(B, 1), B, "query"), (key(B, 8), B, "positive"), (key(B, 9), B, "positive")]
-    return pd.DataFrame(rows, columns=report.PROTOCOL_COLUMNS)
+    return pd.DataFrame(rows, columns=results.PROTOCOL_COLUMNS)
 
 
 def test_recompute_metrics_by_hand():
-    m = report.recompute_metrics(rankings_of(HAND), [1, 2, 3], [2, 3])
+    m = results.recompute_metrics(rankings_of(HAND), [1, 2, 3], [2, 3])
     assert m == pytest.approx({"recall@1": 50.0, "recall@2": 75.0, "recall@3": 75.0,
                                "precision@2": 50.0, "precision@3": 100.0 / 3})
-    capped = report.recompute_metrics(rankings_of(HAND), [1], [2, 3], positives_per_setting={A: 1, B: 2})
+    capped = results.recompute_metrics(rankings_of(HAND), [1], [2, 3], positives_per_setting={A: 1, B: 2})
     assert capped["precision@2"] == pytest.approx(75.0)
     assert capped["precision@3"] == pytest.approx(75.0)
-    same = report.recompute_metrics(rankings_of(HAND), [], [3], positives_per_setting=6)
+    same = results.recompute_metrics(rankings_of(HAND), [], [3], positives_per_setting=6)
     assert same["precision@3"] == pytest.approx(100.0 / 3)
 
 
 def test_recompute_metrics_row_order_and_depth():
     r = rankings_of(HAND).sample(frac=1.0, random_state=3)        # order of rows does not matter
-    assert report.recompute_metrics(r, [1], [2])["recall@1"] == pytest.approx(50.0)
+    assert results.recompute_metrics(r, [1], [2])["recall@1"] == pytest.approx(50.0)
     with pytest.raises(ValueError, match="top"):
-        report.recompute_metrics(r, [1, 5], [2])
+        results.recompute_metrics(r, [1, 5], [2])
 
 
 def test_check_protocol_accepts_the_hand_cell():
-    counts = report.check_protocol(rankings_of(HAND), hand_protocol(), positives=2)
+    counts = results.check_protocol(rankings_of(HAND), hand_protocol(), positives=2)
     assert counts == {"queries": 4, "settings": 2, "positives": 3}
 
 
 def test_check_protocol_rejects_a_query_of_its_own_setting():
     bad = dict(HAND)
     bad[key(A, 0)] = [key(A, 1), key(B, 5), key(B, 6)]         # A0 retrieves A1, another query of A
-    with pytest.raises(report.ProtocolError, match="another query of its own setting"):
-        report.check_protocol(rankings_of(bad), hand_protocol())
+    with pytest.raises(results.ProtocolError, match="another query of its own setting"):
+        results.check_protocol(rankings_of(bad), hand_protocol())
 
 
 def test_check_protocol_rejects_self_and_outsiders_and_too_many_positives():
     self_hit = dict(HAND)
     self_hit[key(B, 0)] = [key(B, 0), key(A, 6), key(A, 7)]
-    with pytest.raises(report.ProtocolError, match="itself"):
-        report.check_protocol(rankings_of(self_hit), hand_protocol())
+    with pytest.raises(results.ProtocolError, match="itself"):
+        results.check_protocol(rankings_of(self_hit), hand_protocol())
     outsider = dict(HAND)
     outsider[key(B, 0)] = [key(B, 4), key(A, 6), key(A, 7)]    # a frame of B that is neither query nor positive
-    with pytest.raises(report.ProtocolError, match="outside the positives"):
-        report.check_protocol(rankings_of(outsider), hand_protocol())
-    with pytest.raises(report.ProtocolError, match="more than 1 positives"):
-        report.check_protocol(rankings_of(HAND), hand_protocol(), positives=1)
+    with pytest.raises(results.ProtocolError, match="outside the positives"):
+        results.check_protocol(rankings_of(outsider), hand_protocol())
+    with pytest.raises(results.ProtocolError, match="more than 1 positives"):
+        results.check_protocol(rankings_of(HAND), hand_protocol(), positives=1)
 
 
 # ---- a fake study on disk ------------------------------------------------------------------------------------------
+# 3 settings x 2 queries; every cell's rankings hold the top 10 and its cell.json records exactly the metrics the report
+# recomputes from them (`results.recompute_metrics`), as a real cell does. Rank 1 is the query's own positive 0009 when
+# the query is "right", else a frame of another setting; rank 3 is always the second positive 0008; the other ranks
+# are frames of other settings. So per cell: recall@1 = right / 6, recall@5 = recall@10 = 100,
+# precision@2 = right / 12, precision@4 = (right + 6) / 24, precision@6 = (right + 6) / 36 (x 100).
 
-RECALL = {1: 60.0, 5: 80.0, 10: 90.0}
-PRECISION = {2: 50.0, 4: 40.0, 6: 30.0}
 LABELS = {"s1": "GT depth, GT semantics", "s2": "GT depth, DeepLabV3 semantics"}
+DROPPED = {1.0: set(), 5.0: {key(B, 1)}, math.inf: {key(A, 0), key(B, 1)}}   # queries a threshold gets wrong
+SEED_RIGHT = {0: set(), 1: {key(A, 1)}}                                      # seed 1 gets one query more right
 
 
-def value(method, scenario, threshold, seed, metric, k) -> float:
-    base = (RECALL if metric == "recall" else PRECISION)[k]
+def right_of(method, scenario, threshold, seed) -> set[str]:
+    """The queries whose top-1 match is of their own setting: s1 at 1 m gets A0, B1, C0 (s2: A0, B1), larger
+    thresholds fewer, seed 1 one more; the image baseline only seed 1's."""
     if method == "color_hist":
-        return base - 20.0 + seed
-    bonus = {1.0: 5.0, 2.0: 1.0, 5.0: 0.0, 10.0: 0.5, math.inf: 2.0}[threshold] + (3.0 if scenario == "s1" else 0.0)
-    return base + bonus + 2.0 * seed      # seeds 0 and 1: mean = base + bonus + 1, std = sqrt(2)
+        return set(SEED_RIGHT[seed])
+    base = {key(A, 0), key(B, 1)} | ({key(C, 0)} if scenario == "s1" else set())
+    return (base - DROPPED[threshold]) | SEED_RIGHT[seed]
 
 
-def write_cell(study, method, scenario, threshold, seed, queries_right: set[str]):
+def write_cell(study, method, scenario, threshold, seed):
     d = paths.cell_dir(study, method, scenario, threshold, seed)
     d.mkdir(parents=True)
-    metrics = {f"{m}@{k}": value(method, scenario, threshold, seed, m, k)
-               for m, ks in (("recall", RECALL), ("precision", PRECISION)) for k in ks}
-    cell = {"method": method, "scenario": scenario, "threshold": "inf" if math.isinf(threshold) else threshold,
-            "seed": seed, "study": study, "scenario_label": LABELS.get(scenario, "RGB only"), "depth": "gt",
-            "semantic": "gt", "timings": {"train": 1.0}, "metrics": metrics,
-            "protocol": {"settings": 3, "frames": 4, "queries": 2, "positives": 2}}
-    (d / "cell.json").write_text(json.dumps(cell))
+    right = right_of(method, scenario, threshold, seed)
     rows = []
-    for s in (A, B, C):
+    for j, s in enumerate((A, B, C)):
+        other = (A, B, C)[(j + 1) % 3]
         for i in (0, 1):
             q = key(s, i)
-            other = [x for x in (A, B, C) if x != s][0]
-            top1 = key(s, 9) if q in queries_right else key(other, 3)
-            rows.append((q, s, 1, top1, top1.split("/")[0], 0.5))
-            rows.append((q, s, 2, key(other, 2), other, 0.7))
-    pd.DataFrame(rows, columns=report.RANKING_COLUMNS).to_csv(d / "rankings.csv", index=False)
+            ms = [key(other, 10 + r) for r in range(10)]
+            if q in right:
+                ms[0] = key(s, 9)
+            ms[2] = key(s, 8)
+            rows += [(q, s, r, m, m.split("/")[0], 0.1 * r) for r, m in enumerate(ms, 1)]
+    rankings = pd.DataFrame(rows, columns=results.RANKING_COLUMNS)
+    rankings.to_csv(d / "rankings.csv", index=False)
+    cell = {"method": method, "scenario": scenario, "threshold": "inf" if math.isinf(threshold) else threshold,
+            "seed": seed, "study": study, "scenario_label": LABELS.get(scenario, "RGB only"), "depth": "gt",
+            "semantic": "gt", "timings": {"train": 1.0},
+            "metrics": results.recompute_metrics(rankings, [1, 5, 10], [2, 4, 6]),
+            "protocol": {"settings": 3, "frames": 4, "queries": 2, "positives": 2}}
+    (d / "cell.json").write_text(json.dumps(cell))
 
 
 @pytest.fixture
@@ -137,10 +147,9 @@ def study(tmp_path, monkeypatch):
     for sc in ("s1", "s2"):
         for t in (1.0, 5.0, math.inf):
             for seed in (0, 1):
-                right = {key(A, 0), key(B, 1)} | ({key(C, 0)} if sc == "s1" else set())
-                write_cell(name, "gcn", sc, t, seed, right)
+                write_cell(name, "gcn", sc, t, seed)
     for seed in (0, 1):
-        write_cell(name, "color_hist", "rgb", math.inf, seed, set())
+        write_cell(name, "color_hist", "rgb", math.inf, seed)
     return name
 
 
@@ -150,36 +159,35 @@ def test_paths_follow_the_monkeypatched_roots(study, tmp_path):
 
 
 def test_collect_one_row_per_number(study):
-    r = report.collect(study)
-    assert list(r.columns) == report.RESULT_COLUMNS
+    r = results.collect(study)
+    assert list(r.columns) == results.RESULT_COLUMNS
     assert len(r) == (2 * 3 * 2 + 2) * 6
     assert not r.duplicated(["method", "scenario", "threshold", "seed", "metric", "k"]).any()
     assert r["threshold"].dtype == float and np.isinf(r["threshold"]).any()
     assert list(r["method"].unique()) == ["gcn", "color_hist"]
-    one = r[(r.method == "gcn") & (r.scenario == "s1") & (r.threshold == 1.0) & (r.seed == 1)
-            & (r.metric == "recall") & (r.k == 5)]
-    assert one["value"].tolist() == [80.0 + 5 + 3 + 2]
-    pd.testing.assert_frame_equal(r, report.collect(study))      # deterministic
+    one = r[(r.method == "gcn") & (r.scenario == "s1") & (r.threshold == 1.0) & (r.seed == 1) & (r.metric == "recall")]
+    assert one["value"].tolist() == pytest.approx([100.0 * 4 / 6, 100.0, 100.0])     # A0, A1, B1, C0 right at rank 1
+    pd.testing.assert_frame_equal(r, results.collect(study))      # deterministic
 
 
 def test_collect_without_cells_is_one_clear_error(tmp_path, monkeypatch):
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
     with pytest.raises(FileNotFoundError, match="no cell.json"):
-        report.collect("nothing")
+        results.collect("nothing")
 
 
 def test_summary_mean_std_n(study):
-    s = report.summary(report.collect(study))
+    s = statistics.summary(results.collect(study))
     row = s[(s.method == "gcn") & (s.scenario == "s2") & (s.threshold == math.inf) & (s.metric == "precision")
             & (s.k == 4)].iloc[0]
-    vals = [40.0 + 2 + 0, 40.0 + 2 + 2]
+    vals = [100.0 * (0 + 6) / 24, 100.0 * (1 + 6) / 24]       # no query right at rank 1 (seed 1: A1)
     assert row["mean"] == pytest.approx(np.mean(vals))
     assert row["std"] == pytest.approx(np.std(vals, ddof=1))
     assert row["n"] == 2
 
 
 def test_paper_tables_transcription():
-    p = report.paper_tables()
+    p = results.paper_tables()
     assert len(p) == 4 * 5 * 6
     get = lambda sc, t, m, k: p[(p.scenario == sc) & (p.threshold == t) & (p.metric == m) & (p.k == k)]["value"].item()
     assert get("s1", 1.0, "recall", 1) == 94.3
@@ -189,22 +197,23 @@ def test_paper_tables_transcription():
 
 
 def test_tables_bold_best_and_paper_numbers(study, tmp_path):
-    results = report.collect(study)
-    written = report.write_tables(results, tmp_path / "out", LABELS)
+    numbers = results.collect(study)
+    written = tables.write_tables(numbers, tmp_path / "out", LABELS)
     assert set(written) == {f"table{i}_{e}" for i in (1, 2) for e in ("md", "csv", "tex")}
     md = written["table1_md"].read_text()
-    # s1 recall@1: threshold 1 is best: 60 + 5 + 3 + 1 = 69.0 ± 1.4, bold; paper 94.3 beside it
+    # s1 recall@1: threshold 1 is best: 3 and 4 of 6 queries right, 58.3 ± 11.8, bold; paper 94.3 beside it
     line = next(l for l in md.splitlines() if l.startswith("| gcn | s1: GT depth, GT semantics | 1 |"))
-    assert f"**69.0 ± {math.sqrt(2):.1f}**" in line and "94.3" in line
+    assert "**58.3 ± 11.8**" in line and "94.3" in line
     line_inf = next(l for l in md.splitlines() if "| ∞ |" in l and "gcn" not in l.split("|")[1] + "x")
     assert "**" not in line_inf.split("|")[4]
     assert "color_hist | RGB only" in md and "n = 2 seeds" in md
     tex = written["table1_tex"].read_text()
-    assert r"\textbf{69.0 $\pm$ 1.4}" in tex and r"color\_hist" in tex and r"$\infty$" in tex
+    assert r"\textbf{58.3 $\pm$ 11.8}" in tex and r"color\_hist" in tex and r"$\infty$" in tex
     csv = pd.read_csv(written["table1_csv"])
     assert list(csv.columns) == ["method", "scenario", "threshold", "k", "mean", "std", "n", "paper"]
     row = csv[(csv.method == "gcn") & (csv.scenario == "s1") & (csv.threshold == 1.0) & (csv.k == 1)].iloc[0]
-    assert row["mean"] == pytest.approx(69.0) and row["std"] == pytest.approx(math.sqrt(2), abs=1e-4)
+    assert row["mean"] == pytest.approx(100.0 * 3.5 / 6, abs=1e-4)
+    assert row["std"] == pytest.approx(100.0 / 6 / math.sqrt(2), abs=1e-4)
     assert row["n"] == 2 and row["paper"] == 94.3
     assert csv[csv.method == "color_hist"]["paper"].isna().all()
     assert csv["method"].iloc[-1] == "color_hist"
@@ -212,8 +221,8 @@ def test_tables_bold_best_and_paper_numbers(study, tmp_path):
 
 
 def test_single_seed_shows_mean_only(study):
-    r = report.collect(study)
-    md = report.table_markdown(r[r.seed == 0], "recall", LABELS)
+    r = results.collect(study)
+    md = tables.table_markdown(r[r.seed == 0], "recall", LABELS)
     assert "±" not in md.split("\n", 2)[2] and "one seed" in md
 
 
@@ -234,24 +243,50 @@ def test_write_report_and_deterministic_bytes(study):
     before = {k: p.read_bytes() for k, p in written.items()}
     again = report.write_report(study, fake_rgb, LABELS)
     assert {k: p.read_bytes() for k, p in again.items()} == before
-    assert len(pd.read_csv(written["results"])) == len(report.collect(study))
+    assert len(pd.read_csv(written["results"])) == len(results.collect(study))
+
+
+@pytest.mark.parametrize("fixture", ["study", "rich", "two"])
+def test_fixture_cells_record_what_their_rankings_give(fixture, request):
+    """Every hand-built cell, like a real one, records in cell.json exactly the metrics of its rankings.csv."""
+    name = request.getfixturevalue(fixture)
+    name = getattr(name, "name", name)
+    files = results.cell_files(name)
+    assert files
+    for f in files:
+        recorded = results.cell_metrics(json.loads(f.read_text()))
+        ranked = results.split_protocols(pd.read_csv(f.parent / "rankings.csv"))
+        assert list(ranked) == list(recorded)
+        for protocol, r in ranked.items():
+            assert results.recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == recorded[protocol], f
+
+
+def test_report_refuses_a_cell_whose_metrics_disagree_with_its_rankings(study):
+    folder = paths.cell_dir(study, "gcn", "s2", 5.0, 1)
+    cell = json.loads((folder / "cell.json").read_text())
+    cell["metrics"]["precision@4"] += 0.5
+    (folder / "cell.json").write_text(json.dumps(cell))
+    with pytest.raises(results.CellMismatchError, match="paper precision@4 is .* in cell.json but .* from rankings.csv"):
+        results.query_table(study)
+    with pytest.raises(results.CellMismatchError, match=re.escape(str(folder))):
+        report.write_report(study)
 
 
 def test_fig_matches_picks_hard_easy_hard(study):
-    cells = report.match_cells(study)
+    cells = figures.match_cells(study)
     assert {sc: c[:2] for sc, c in cells.items()} == {"s1": (1.0, 0), "s2": (1.0, 0)}
     top1 = {sc: pd.read_csv(c[2] / "rankings.csv").query("rank == 1") for sc, c in cells.items()}
-    chosen = report.pick_queries(top1, 3)
-    # right in both scenarios: A0, B1; right in s1 only: C0; never right: A1, B0, C1.
+    chosen = figures.pick_queries(top1, 3)
+    # at 1 m, seed 0: right in both scenarios: A0, B1; right in s1 only: C0; never right: A1, B0, C1.
     # easy: A0 (first key among the best); hard ones from other settings: B0, C1; shown hard, easy, hard
     assert chosen == [key(B, 0), key(A, 0), key(C, 1)]
 
 
 def test_recall_figure_resaves_identically(study, tmp_path):
-    r = report.collect(study)
-    p = report.fig_recall_vs_threshold(r, tmp_path / "a.png", scenario_labels=LABELS)
+    r = results.collect(study)
+    p = figures.fig_recall_vs_threshold(r, tmp_path / "a.png", scenario_labels=LABELS)
     first = p.read_bytes()
-    report.fig_recall_vs_threshold(r, tmp_path / "a.png", scenario_labels=LABELS)
+    figures.fig_recall_vs_threshold(r, tmp_path / "a.png", scenario_labels=LABELS)
     assert p.read_bytes() == first
 
 
@@ -265,10 +300,12 @@ def test_report_notebook_is_thin_and_clean():
     assert len(tagged) == 1 and tagged[0] is code[0]
     assert tagged[0].source.strip() == 'study = "smoke"'
     for c in code:
-        assert c.execution_count is None and c.outputs == []
+        checked = c.source.startswith("# NBVAL_CHECK_OUTPUT")
+        assert c.execution_count is None and (checked or c.outputs == [])  # outputs kept only where nbval checks
         tree = ast.parse(c.source)
         assert not [n for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.ClassDef, ast.AsyncFunctionDef))]
-    assert any(c.source.startswith("# NBVAL_IGNORE_OUTPUT") and "table1" in c.source for c in code)
+    table = [c for c in code if c.source.startswith("# NBVAL_CHECK_OUTPUT") and "table1" in c.source]
+    assert len(table) == 1 and table[0].outputs  # Table 1's numbers are compared by nbval
 
 
 # ---- bootstrap intervals and paired tests --------------------------------------------------------------------------
@@ -289,21 +326,21 @@ def draw_rankings(hit_of, seed: int = 0, settings=SETTINGS, queries: int = 5) ->
                 ms[0] = key(s, 90)
             ms[5] = key(s, 91)
             rows += [(q, s, r, m, m.split("/")[0], 0.1 * r) for r, m in enumerate(ms, 1)]
-    return pd.DataFrame(rows, columns=report.RANKING_COLUMNS)
+    return pd.DataFrame(rows, columns=results.RANKING_COLUMNS)
 
 
 def query_rows(hit_of, seeds=(0, 1, 2), **kw) -> pd.DataFrame:
     parts = []
     for sd in seeds:
-        q = report.per_query_values(draw_rankings(hit_of, sd, **kw), [1, 5], [2, 6])
+        q = results.per_query_values(draw_rankings(hit_of, sd, **kw), [1, 5], [2, 6])
         q.insert(0, "seed", sd)
         parts.append(q)
     return pd.concat(parts, ignore_index=True)
 
 
 def interval_of(rows: pd.DataFrame, col: str = "recall@1", n_boot: int = 1000):
-    cols = report._metric_cols(rows)
-    boot = report.Bootstrap(rows["seed"].nunique(), rows["setting"].nunique(),
+    cols = results.metric_cols(rows)
+    boot = statistics.Bootstrap(rows["seed"].nunique(), rows["setting"].nunique(),
                             int(rows.groupby(["seed", "setting"]).size().max()), n_boot)
     iv = boot.interval(*boot.cube(rows, cols))
     j = cols.index(col)
@@ -311,10 +348,10 @@ def interval_of(rows: pd.DataFrame, col: str = "recall@1", n_boot: int = 1000):
 
 
 def test_per_query_values_average_to_the_metrics():
-    q = report.per_query_values(rankings_of(HAND), [1, 2, 3], [2, 3])
+    q = results.per_query_values(rankings_of(HAND), [1, 2, 3], [2, 3])
     assert list(q.columns) == ["query", "setting", "recall@1", "recall@2", "recall@3", "precision@2", "precision@3"]
     assert q.drop(columns=["query", "setting"]).mean().to_dict() == pytest.approx(
-        report.recompute_metrics(rankings_of(HAND), [1, 2, 3], [2, 3]))
+        results.recompute_metrics(rankings_of(HAND), [1, 2, 3], [2, 3]))
 
 
 def test_interval_when_every_query_hits_is_100():
@@ -333,8 +370,8 @@ def test_interval_half_the_settings_hit_is_wide_around_50():
 
 def test_paired_difference_of_a_cell_with_itself_is_exactly_zero():
     rows = query_rows(lambda s, i, sd: (i + sd) % 3 == 0)
-    boot = report.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0))
-    d = report.paired_difference(rows, rows, boot)
+    boot = statistics.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0))
+    d = statistics.paired_difference(rows, rows, boot)
     assert (d["diff"] == 0).all() and (d["ci_lo"] == 0).all() and (d["ci_hi"] == 0).all()
     assert not d["significant"].any()
     assert d["n_seeds"].tolist() == [3] * 4 and d["n_queries"].tolist() == [3 * 6 * 5] * 4
@@ -342,7 +379,7 @@ def test_paired_difference_of_a_cell_with_itself_is_exactly_zero():
 
 def test_same_resample_indices_for_every_group():
     rows = query_rows(lambda s, i, sd: (i * 7 + sd + SETTINGS.index(s)) % 4 == 0)
-    boot = report.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0), n_boot=200)
+    boot = statistics.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0), n_boot=200)
     values, nq = boot.cube(rows, ["recall@1"])
     a = boot.resample(values, nq)
     b = boot.resample(values + 5.0, nq)            # another group of the same shape: shifted by exactly 5
@@ -371,7 +408,7 @@ def write_rich_cell(study, method, scenario, threshold, seed):
     r.to_csv(d / "rankings.csv", index=False)
     cell = {"method": method, "scenario": scenario, "threshold": "inf" if math.isinf(threshold) else threshold,
             "seed": seed, "study": study, "scenario_label": scenario, "metrics":
-            report.recompute_metrics(r, [1, 5, 10], [2, 4, 6])}
+            results.recompute_metrics(r, [1, 5, 10], [2, 4, 6])}
     (d / "cell.json").write_text(json.dumps(cell))
 
 
@@ -398,11 +435,11 @@ def rich(tmp_path, monkeypatch):
 
 
 def test_threshold_tests_mark_the_clearly_worse_threshold(rich):
-    qv = report.query_table(rich.name)
-    boot = report.Bootstrap.for_queries(qv)
-    iv = report.intervals(qv, boot)
-    assert list(iv.columns) == report.INTERVAL_COLUMNS and set(iv["n_seeds"]) == {3}
-    tt = report.threshold_tests(qv, iv, boot)
+    qv = results.query_table(rich.name)
+    boot = statistics.Bootstrap.for_queries(qv)
+    iv = statistics.intervals(qv, boot)
+    assert list(iv.columns) == statistics.INTERVAL_COLUMNS and set(iv["n_seeds"]) == {3}
+    tt = statistics.threshold_tests(qv, iv, boot)
     row = tt[(tt.method == "gcn") & (tt.scenario == "s1") & (tt.metric == "recall") & (tt.k == 1)].iloc[0]
     assert row["threshold"] == math.inf and row["best_threshold"] == 1.0
     assert row["diff"] < -50 and row["ci_hi"] < 0 and row["significant"]
@@ -417,13 +454,13 @@ def test_rich_report_tables_ablation_light_depth(rich, capsys):
                  "recall_by_light", "depth_scale", "recall_vs_depth_scale"):
         assert written[name].is_file(), name
     res = pd.read_csv(written["results"])
-    assert list(res.columns) == report.RESULT_COLUMNS and not res.duplicated(report.RESULT_COLUMNS[:-1]).any()
-    assert list(pd.read_csv(written["intervals"]).columns) == report.INTERVAL_COLUMNS
+    assert list(res.columns) == results.RESULT_COLUMNS and not res.duplicated(results.RESULT_COLUMNS[:-1]).any()
+    assert list(pd.read_csv(written["intervals"]).columns) == statistics.INTERVAL_COLUMNS
 
     md = written["table1_md"].read_text()
     assert "s1x2" not in md                                  # in_tables: false
     line = next(l for l in md.splitlines() if l.startswith("|  |  | ∞ |"))
-    assert line.split("|")[4].strip().endswith(report.DAGGER)  # recall@1 at ∞: significantly below t = 1
+    assert line.split("|")[4].strip().endswith(tables.DAGGER)  # recall@1 at ∞: significantly below t = 1
     assert "†: significantly below the best threshold" in md and "95% bootstrap interval" in md
     csv = pd.read_csv(written["table1_csv"])
     assert list(csv.columns) == ["method", "scenario", "threshold", "k", "mean", "std", "n", "ci_lo", "ci_hi",
@@ -479,7 +516,7 @@ P2 = {("gcn", "s1", 0.0): (0.3, 0.2), ("gcn", "s1", 1.0): (0.9, 0.4), ("gcn", "s
 def protocol_rows(settings, queries: int = 5) -> pd.DataFrame:
     rows = [(key(s, i), s, "query") for s in settings for i in range(queries)]
     rows += [(key(s, p), s, "positive") for s in settings for p in (90, 91)]
-    return pd.DataFrame(rows, columns=report.PROTOCOL_COLUMNS)
+    return pd.DataFrame(rows, columns=results.PROTOCOL_COLUMNS)
 
 
 def write_two_protocol_cell(study, method, scenario, threshold, seed):
@@ -487,9 +524,9 @@ def write_two_protocol_cell(study, method, scenario, threshold, seed):
     for name, settings, p in (("paper", PAPER_SETTINGS, P2[(method, scenario, threshold)][0]),
                               ("siblings", SIBLING_SETTINGS, P2[(method, scenario, threshold)][1])):
         r = draw_rankings(lambda s, i, sd: _u(method, scenario, threshold, name, s, i, sd) < p, seed, settings)
-        metrics[name] = report.recompute_metrics(r, [1, 5, 10], [2, 4, 6])
-        parts.append(r.assign(protocol=name)[["protocol"] + report.RANKING_COLUMNS])
-        protos.append(protocol_rows(settings).assign(protocol=name)[["protocol"] + report.PROTOCOL_COLUMNS])
+        metrics[name] = results.recompute_metrics(r, [1, 5, 10], [2, 4, 6])
+        parts.append(r.assign(protocol=name)[["protocol"] + results.RANKING_COLUMNS])
+        protos.append(protocol_rows(settings).assign(protocol=name)[["protocol"] + results.PROTOCOL_COLUMNS])
     d = paths.cell_dir(study, method, scenario, threshold, seed)
     d.mkdir(parents=True)
     pd.concat(parts).to_csv(d / "rankings.csv", index=False)
@@ -510,34 +547,34 @@ def two(tmp_path, monkeypatch):
 
 
 def test_results_and_intervals_have_a_protocol_column(two):
-    r = report.collect(two)
-    assert list(r.columns) == report.RESULT_COLUMNS and "protocol" in r.columns
+    r = results.collect(two)
+    assert list(r.columns) == results.RESULT_COLUMNS and "protocol" in r.columns
     assert set(r["protocol"]) == {"paper", "siblings"} and len(r) == len(P2) * 2 * 2 * 6
     assert r["protocol"].iloc[0] == "paper"
-    qv = report.query_table(two)
-    assert list(qv.columns[:7]) == report.QUERY_KEYS
+    qv = results.query_table(two)
+    assert list(qv.columns[:7]) == results.QUERY_KEYS
     n = qv.groupby(["method", "scenario", "threshold", "seed", "protocol"])["setting"].nunique()
     assert set(n.xs("paper", level="protocol")) == {6} and set(n.xs("siblings", level="protocol")) == {4}
 
 
 def test_every_number_recomputed_per_protocol_with_the_protocol_enforced(two):
     written = report.write_report(two, n_boot=200)
-    results = pd.read_csv(written["results"])
-    for f in report.cell_files(two):
+    numbers = pd.read_csv(written["results"])
+    for f in results.cell_files(two):
         cell = json.loads(f.read_text())
         rankings, protocol = pd.read_csv(f.parent / "rankings.csv"), pd.read_csv(f.parent / "protocol.csv")
-        counts = report.check_protocols(rankings, protocol, positives=2, settings={"paper": 6, "siblings": 4})
+        counts = results.check_protocols(rankings, protocol, positives=2, settings={"paper": 6, "siblings": 4})
         assert set(counts) == {"paper", "siblings"}
         thr = float(cell["threshold"])
-        for name, r in report.split_protocols(rankings).items():
-            again = report.recompute_metrics(r, [1, 5, 10], [2, 4, 6])
-            rows = results[(results.method == cell["method"]) & (results.scenario == cell["scenario"])
-                           & (results.threshold == thr) & (results.seed == cell["seed"]) & (results.protocol == name)]
+        for name, r in results.split_protocols(rankings).items():
+            again = results.recompute_metrics(r, [1, 5, 10], [2, 4, 6])
+            rows = numbers[(numbers.method == cell["method"]) & (numbers.scenario == cell["scenario"])
+                           & (numbers.threshold == thr) & (numbers.seed == cell["seed"]) & (numbers.protocol == name)]
             assert len(rows) == 6
             for _, row in rows.iterrows():
                 assert row.value == pytest.approx(again[f"{row.metric}@{int(row.k)}"], abs=1e-3)
     iv = pd.read_csv(written["intervals"])
-    assert list(iv.columns) == report.INTERVAL_COLUMNS and set(iv["protocol"]) == {"paper", "siblings"}
+    assert list(iv.columns) == statistics.INTERVAL_COLUMNS and set(iv["protocol"]) == {"paper", "siblings"}
     tests = pd.read_csv(written["threshold_tests"])
     assert set(tests["protocol"]) == {"paper", "siblings"}
 
@@ -546,24 +583,24 @@ def test_mixing_the_protocols_is_caught(two):
     folder = paths.cell_dir(two, "gcn", "s1", 1.0, 0)
     rankings, protocol = pd.read_csv(folder / "rankings.csv"), pd.read_csv(folder / "protocol.csv")
     with pytest.raises(ValueError, match="protocols \\['paper', 'siblings'\\] together"):
-        report.recompute_metrics(rankings, [1], [2])
+        results.recompute_metrics(rankings, [1], [2])
     # a paper query that retrieves a frame of a setting only the siblings protocol has
     bad = rankings.copy()
     i = bad.index[(bad.protocol == "paper") & (bad["rank"] == 2)][0]
     bad.loc[i, ["match", "match_setting"]] = [key("ai_020_002", 3), "ai_020_002"]
-    with pytest.raises(report.ProtocolError, match="not of the protocol's settings"):
-        report.check_protocols(bad, protocol)
+    with pytest.raises(results.ProtocolError, match="not of the protocol's settings"):
+        results.check_protocols(bad, protocol)
     # a paper protocol with two settings of one family; a siblings protocol with a family alone
     moved, moved_rankings = (f.replace("ai_025_001", "ai_024_002", regex=True) for f in (protocol, rankings))
-    with pytest.raises(report.ProtocolError, match="settings of one family"):
-        report.check_protocols(moved_rankings, moved)
+    with pytest.raises(results.ProtocolError, match="settings of one family"):
+        results.check_protocols(moved_rankings, moved)
     alone = protocol[~((protocol.protocol == "siblings") & (protocol.setting == "ai_021_002"))]
     alone_r = rankings[~((rankings.protocol == "siblings") & ((rankings.query_setting == "ai_021_002")
                                                               | (rankings.match_setting == "ai_021_002")))]
-    with pytest.raises(report.ProtocolError, match="without exactly 2 settings: \\['ai_021'\\]"):
-        report.check_protocols(alone_r, alone)
-    with pytest.raises(report.ProtocolError, match="protocol paper: 6 settings, 16 expected"):
-        report.check_protocols(rankings, protocol, settings={"paper": 16, "siblings": 4})
+    with pytest.raises(results.ProtocolError, match="without exactly 2 settings: \\['ai_021'\\]"):
+        results.check_protocols(alone_r, alone)
+    with pytest.raises(results.ProtocolError, match="protocol paper: 6 settings, 16 expected"):
+        results.check_protocols(rankings, protocol, settings={"paper": 16, "siblings": 4})
 
 
 def test_report_of_two_protocols(two):
@@ -588,7 +625,7 @@ def test_report_of_two_protocols(two):
                    & (res.k == 1)]["value"].mean()
         assert row["mean"] == pytest.approx(want, abs=1e-3)
     prot = pd.read_csv(written["protocols_csv"])
-    assert list(prot.columns) == report.PROTOCOLS_COLUMNS
+    assert list(prot.columns) == statistics.PROTOCOLS_COLUMNS
     g = prot[prot.method == "gcn"]
     assert set(g["threshold"]) == {1.0} and list(g["protocol"]) == ["paper", "siblings"]   # best paper threshold
     assert list(g["n_settings"]) == [6, 4]
@@ -612,7 +649,7 @@ def test_paper_numbers_of_a_two_protocol_study_ignore_the_siblings(two, tmp_path
     """The paper tables of a study with both protocols equal those of the same cells with the siblings removed."""
     with_both = report.write_report(two, n_boot=200)
     paper_md = with_both["table1_md"].read_text()
-    for f in report.cell_files(two):
+    for f in results.cell_files(two):
         cell = json.loads(f.read_text())
         cell["metrics"] = cell["metrics"]["paper"]                         # a cell of one protocol (older format)
         f.write_text(json.dumps(cell))
