@@ -13,7 +13,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
-from tqdm.auto import tqdm
+from monolib.progress import tqdm
 
 from monolib import methods, paths
 from monolib.params import Study, StudyError
@@ -87,9 +87,64 @@ def check_notebook_parameters(notebook: Path, names: set[str]) -> None:
         raise StudyError(f"{notebook}: no parameter named {', '.join(missing)} (declared: {', '.join(sorted(declared))})")
 
 
+class NotebookFailed(RuntimeError):
+    """A notebook run stopped: which notebook cell raised what, and where the executed notebook (with the full
+    traceback) is. One plain message, so that it pickles back from a worker process and reads in a log."""
+
+
+def kernel_config():
+    """The kernel settings of every notebook the runner executes (papermill's `config`, read by nbclient and
+    jupyter_client), so that a log of the run holds the run and not the kernels' plumbing:
+
+    - the kernel's channels are Unix sockets of its own in Jupyter's runtime folder (`transport = "ipc"`, a new
+      `ip` prefix per call), not TCP ports: ipykernel 7 no longer warns, for every notebook, "Kernel is running
+      over TCP without encryption", and parallel kernels cannot collide on a port ("ZMQError: Address already in
+      use"). Where Unix sockets cannot be used (Windows, or a runtime folder whose path is too long for a socket
+      name): TCP with CurveZMQ keys provisioned by the manager (`transport_encryption = "auto"`), which also ends
+      the warning;
+    - the kernel process logs only critical errors (`IPKernelApp.log_level`): jupyter_client interrupts a kernel
+      before shutting it down, and now and then ipykernel reports that interrupt as "ERROR | KeyboardInterrupt
+      caught in kernel". A notebook's own errors are not kernel log lines: they reach the executed notebook and
+      `NotebookFailed`."""
+    import uuid
+
+    import zmq
+    from jupyter_core.paths import jupyter_runtime_dir
+    from traitlets.config import Config
+
+    prefix = os.path.join(jupyter_runtime_dir(), f"kernel-{uuid.uuid4()}-ipc")  # sockets: prefix-1 ... prefix-5
+    config = Config({"NotebookClient": {"extra_arguments": ["--IPKernelApp.log_level=CRITICAL"]}})
+    if os.name == "posix" and len(prefix.encode()) < 96:  # a socket's path: at most 107 bytes on Linux, 103 on macOS
+        os.makedirs(os.path.dirname(prefix), mode=0o700, exist_ok=True)
+        config.KernelManager.transport = "ipc"
+        config.KernelManager.ip = prefix
+    elif zmq.has("curve"):
+        config.KernelManager.transport_encryption = "auto"
+    return config
+
+
+def _ansi_free(text: str) -> str:
+    import re
+
+    return re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", text)
+
+
+def failure_message(notebook: Path, output: Path, exc) -> str:
+    """A `PapermillExecutionError` in a few readable lines: the notebook cell (its number and first line of code),
+    the error, the last lines of its traceback, and the executed notebook that holds the rest."""
+    lines = [ln for ln in _ansi_free(exc.source).splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    tb = [ln for ln in _ansi_free("\n".join(exc.traceback or [])).splitlines()
+          if ln.strip() and ln.strip("- ") and "Traceback (most recent call last)" not in ln]
+    where = f"In [{exc.exec_count}]" + (f" ({lines[0].strip()[:80]})" if lines else "")  # as the notebook shows it
+    tail = "".join(f"\n    {ln}" for ln in tb[-7:-1])  # the lines nearest the error (the error: first line)
+    return (f"{notebook.name}: {where} raised {exc.ename}: {exc.evalue}{tail}\n"
+            f"  executed notebook: {output}")
+
+
 def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retries: int = 1) -> Path:
-    """Run a notebook with papermill in its own kernel (explicit kernel, cwd and timeout); one retry for the
-    kernel-port collisions that parallel kernels can hit."""
+    """Run a notebook with papermill in its own kernel (explicit kernel, cwd and timeout, `kernel_config`); one
+    retry for the kernel-port collisions that parallel kernels can hit. A failing notebook cell raises
+    `NotebookFailed` naming the cell and the executed notebook (papermill writes it, traceback included)."""
     import papermill
 
     output.parent.mkdir(parents=True, exist_ok=True)
@@ -97,10 +152,10 @@ def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retrie
         try:
             papermill.execute_notebook(str(notebook), str(output), parameters=parameters, kernel_name="python3",
                                        cwd=str(notebook.parent), execution_timeout=timeout, progress_bar=False,
-                                       log_output=False)
+                                       log_output=False, config=kernel_config())
             return output
-        except papermill.PapermillExecutionError:
-            raise
+        except papermill.PapermillExecutionError as exc:
+            raise NotebookFailed(failure_message(notebook, output, exc)) from None
         except Exception as exc:  # kernel start-up failures (ZMQError, timeouts)
             if attempt == retries:
                 raise
@@ -109,36 +164,53 @@ def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retrie
     return output
 
 
+def _cell_notebook_path(study_name: str, cell_name: str) -> Path:
+    """Where the runner writes the executed notebook of a cell (`runs/<study>/notebooks/cells/`)."""
+    return paths.study_dir(study_name) / "notebooks" / "cells" / f"{cell_name.replace('/', '__')}.ipynb"
+
+
 def _run_cell_notebook(study_file: str, study_name: str, cell: CellSpec, timeout: int) -> tuple[str, float]:
     t0 = time.perf_counter()
-    out = paths.study_dir(study_name) / "notebooks" / "cells" / f"{cell.name.replace('/', '__')}.ipynb"
+    out = _cell_notebook_path(study_name, cell.name)
     execute(CELL_NOTEBOOK, out, {"study": study_file, "method": cell.method, "scenario": cell.scenario,
                                   "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""}, timeout)
     return cell.name, time.perf_counter() - t0
 
 
-def run_grid(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
-    """Run every cell that has no results yet through papermill, in `jobs` parallel worker processes."""
-    from monolib.cell import copy_cell, is_complete
+def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_process: bool = False) -> dict:
+    """Run every cell that has no results yet through papermill, in `jobs` parallel worker processes
+    (`in_process`: `monolib.cell.run_cell` one cell after the other in this process, no kernel per cell: what
+    `prepare` does for a notebook; the same function computes the same files)."""
+    from monolib.cell import cell_key, copy_cell, is_complete
 
     def folder(c: CellSpec) -> Path:
         return paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed)
 
     cells = grid(study)
-    todo = [c for c in cells if not is_complete(folder(c))]
+    keys = {c.name: cell_key(study, c.method, c.scenario, c.threshold, c.seed) for c in cells}
+    todo = [c for c in cells if not is_complete(folder(c), keys[c.name])]
     copies = same_graphs(study, cells) if todo else {}
     run = [c for c in todo if c.name not in copies]
-    log.info("grid: %d cells, %d done, %d to run, %d to copy", len(cells), len(cells) - len(todo), len(run),
-             len(todo) - len(run))
+    log.debug("grid: %d cells, %d done, %d to run, %d to copy", len(cells), len(cells) - len(todo), len(run),
+              len(todo) - len(run))
     print(f"grid: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run "
           f"({len(todo) - len(run)} of them have the graphs of a smaller threshold: copied from it)", flush=True)
     jobs = jobs or study.jobs
     failed = []
     t0 = time.perf_counter()
-    if run:
+    if run and in_process:
+        from monolib.cell import run_cell
+
+        for c in tqdm(run, desc="cells", unit="cell", disable=not progress):
+            try:
+                run_cell(study, c.method, c.scenario, c.threshold, c.seed)
+            except Exception as exc:
+                failed.append((c.name, exc))
+                log.error("cell %s failed: %s: %s", c.name, type(exc).__name__, exc)
+    elif run:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
             futures = {pool.submit(_run_cell_notebook, study.path, study.name, c, study.cell_timeout): c for c in run}
-            bar = tqdm(total=len(run), desc="cells", disable=not progress)
+            bar = tqdm(total=len(run), desc="cells", unit="cell", disable=not progress)
             for fut in as_completed(futures):
                 try:
                     fut.result()
@@ -150,15 +222,57 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True) -> di
     for c in todo:
         if c.name in copies:
             source = copies[c.name]
-            if is_complete(folder(source)):
-                copy_cell(folder(source), folder(c), c.threshold, source.name)
+            if is_complete(folder(source), keys[source.name]):
+                copy_cell(folder(source), folder(c), c.threshold, source.name, keys[c.name])
             else:
                 failed.append((c.name, f"its source cell {source.name} did not finish"))
     if failed:
-        names = ", ".join(n for n, _ in failed)
-        raise RuntimeError(f"{len(failed)} cells failed ({names}); their notebooks are under "
-                           f"{paths.study_dir(study.name) / 'notebooks' / 'cells'}; re-run to retry only these")
+        ran, lines = {c.name for c in run}, []
+        for name, exc in failed:
+            if name not in ran:  # a copy whose source cell failed
+                lines.append(f"{name}: {exc}")
+            elif in_process:
+                lines.append(name)
+            else:
+                lines.append(f"{name} (executed notebook: {_cell_notebook_path(study.name, name)})")
+        raise NotebookFailed(f"{len(failed)} of {len(cells)} cells failed (their errors are above):"
+                             + "".join(f"\n  {ln}" for ln in lines) + "\nre-run to retry only these")
     return {"cells": len(cells), "ran": len(todo), "seconds": time.perf_counter() - t0}
+
+
+def prepare(study: Study | str, scenarios: list[str] | None = None, cells: bool = False,
+            progress: bool = True) -> Study:
+    """Make what a notebook needs exist, each stage skipped when its files exist (the stages of `run`, cached by
+    the same keys): the dataset (rendered when the study is synthetic), the perception models that `scenarios`
+    use (trained, evaluated, every selected frame predicted), the scenarios' scene graphs and, with `cells`, every
+    cell of the grid (run in this process: `run_grid(in_process=True)`). `scenarios`: names of the study's
+    scenarios, default all of them; `rgb` (the scenario of the image-only methods) needs the dataset only.
+    Returns the study. Every notebook calls it first, so that it runs on a fresh clone with its defaults."""
+    from monolib import dataset, perception, scenegraphs
+    from monolib.cell import IMAGE_SCENARIO
+    from monolib.params import load_study
+
+    if not isinstance(study, Study):
+        study = load_study(study)
+    names = list(study.scenarios) + [IMAGE_SCENARIO] if scenarios is None or cells else list(scenarios)
+    unknown = [n for n in names if n not in study.scenarios and n != IMAGE_SCENARIO]
+    if unknown:
+        raise StudyError(f"scenario {', '.join(map(repr, unknown))}: not in {study.path} "
+                         f"(scenarios: {', '.join(study.scenarios)}, or {IMAGE_SCENARIO} for an image method)")
+    wanted = [n for n in names if n in study.scenarios] if study.graph_methods() else []
+    graphs = [n for n in wanted if not scenegraphs.graphs_path(study, n).exists()]
+    ds = None
+    if not study.graphs_root and (graphs or IMAGE_SCENARIO in names):
+        ds = dataset.ensure_dataset(study, progress=progress)
+    sources = {s for n in graphs for s in (study.scenarios[n].depth, study.scenarios[n].semantic)}
+    models = [m for m in study.model_names() if m in sources] if not study.graphs_root else []
+    if models:
+        perception.run(study, progress=progress, only=models, dataset=ds)
+    if graphs:
+        scenegraphs.build_all(study, graphs, progress=progress)
+    if cells:
+        run_grid(study, progress=progress, in_process=True)
+    return study
 
 
 def needs_perception(study: Study) -> bool:
