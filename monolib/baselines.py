@@ -183,10 +183,12 @@ def _augment(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
 
 
 def cnn_embed(model: ImageEncoder, images: torch.Tensor, batch_size: int = 256) -> torch.Tensor:
-    """(N, out) embeddings of a uint8 image tensor, in order (eval mode)."""
+    """(N, out) embeddings of a uint8 image tensor, in order (eval mode), on the CPU (the model runs on the
+    device of its weights)."""
     model.eval()
+    dev = next(model.parameters()).device
     with torch.inference_mode():
-        out = [model(_normalise(images[s : s + batch_size])) for s in range(0, len(images), batch_size)]
+        out = [model(_normalise(images[s : s + batch_size].to(dev))).cpu() for s in range(0, len(images), batch_size)]
     return torch.cat(out) if out else torch.zeros((0, model.out_channels))
 
 
@@ -199,16 +201,17 @@ class CNNResult:
 
 
 def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tensor, val_settings, spec, seed: int,
-              threads: int = 2, augment: bool = True) -> CNNResult:
+              threads: int = 2, augment: bool = True, deterministic: bool = True) -> CNNResult:
     """The GCN's training loop (`monolib.gcn.train`) with an image encoder: Adam, triplet margin loss, fresh
     per-setting triplets each epoch, early stopping on validation leave-one-out recall@1, best state kept."""
+    from monolib.device import device, seed_everything
     from monolib.gcn import EarlyStopping, draw_triplets
 
     torch.set_num_threads(threads)
-    torch.manual_seed(seed)
+    gen = seed_everything(int(seed), deterministic)
     rng = np.random.default_rng(seed)
-    gen = torch.Generator().manual_seed(int(seed))
-    model = ImageEncoder()
+    dev = device()
+    model = ImageEncoder().to(dev)
     opt = torch.optim.Adam(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
     loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
     settings, val_settings = np.asarray(train_settings), np.asarray(val_settings)
@@ -225,7 +228,7 @@ def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tens
             x = train_images[torch.from_numpy(np.concatenate([a[idx], p[idx], n[idx]]))].float() / 255.0
             if augment:
                 x = _augment(x, gen)
-            z = model((x - 0.5) / 0.25)
+            z = model(((x - 0.5) / 0.25).to(dev))
             loss = loss_fn(z[:b], z[b : 2 * b], z[2 * b :])
             opt.zero_grad()
             loss.backward()
@@ -246,12 +249,13 @@ def image_triplet_embed(study, selection, seed: int, spec=None):
     tr, va, te = (image_tensor(fs) for fs in (selection.train, selection.val, selection.test))
     load_s = time.perf_counter() - t
     result = train_cnn(tr, [f.setting for f in selection.train], va, [f.setting for f in selection.val], spec, seed,
-                       threads=study.threads)
+                       threads=study.threads, deterministic=study.deterministic)
     emb = cnn_embed(result.model, te).numpy().astype(np.float32)
     extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history), "train_s": result.seconds,
              "load_s": load_s, "input_size": list(CNN_SIZE), "channels": [CNN_STEM, *CNN_CHANNELS],
              "parameters": int(sum(p.numel() for p in result.model.parameters()))}
-    return emb, extra, pd.DataFrame(result.history), result.model.state_dict()
+    state = {k: v.detach().cpu() for k, v in result.model.state_dict().items()}  # loadable on any machine
+    return emb, extra, pd.DataFrame(result.history), state
 
 
 def embed(method: str, study, selection, seed: int):

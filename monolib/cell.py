@@ -23,7 +23,7 @@ import pandas as pd
 import torch
 
 from monolib import gcn, graph, methods, paths, retrieval, scenegraphs
-from monolib.io import atomic_path, read_json, write_json, write_text
+from monolib.io import atomic_path, load_cached, read_json, read_json_dict, write_json, write_text
 from monolib.params import Study, StudyError
 
 log = logging.getLogger(__name__)
@@ -34,8 +34,38 @@ def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed
     return Path(out_dir) if out_dir else paths.cell_dir(study.name, method, scenario, threshold, seed)
 
 
-def is_complete(folder: Path) -> bool:
-    return (folder / "cell.json").is_file()
+def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: int) -> str:
+    """Cache key of a cell: its inputs' key (the scenario's graphs, or the dataset for an image method), the
+    method's settings, threshold, seed, protocol, device, deterministic mode and the cells' code version."""
+    from monolib import dataset
+    from monolib.device import device
+    from monolib.params import key_of
+    from monolib.versions import code_version
+
+    graph_method = methods.kind(method, study) == "graph"
+    inputs = scenegraphs.scenario_key(study, scenario) if graph_method else dataset.dataset_key(study)
+    return key_of({"inputs": inputs, "method": method, "encoder": dataclasses.asdict(study.gcn_spec(method)),
+                   "threshold": paths.threshold_json(threshold) if graph_method else None, "seed": int(seed),
+                   "protocol": study.protocol, "val": study.gcn.val_settings, "device": device().type,
+                   "deterministic": study.deterministic, "code": code_version("cells")})
+
+
+def read_record(folder: Path) -> Optional[dict]:
+    """A cell's `cell.json` through the one cache loader (`monolib.io.load_cached`): None when absent or unreadable
+    (an unreadable one is removed with a warning, so the cell runs again)."""
+    return load_cached(Path(folder) / "cell.json", lambda p: read_json_dict(p, ("metrics", "method")), "cell record")
+
+
+def is_complete(folder: Path, key: Optional[str] = None) -> bool:
+    """The cell's record is there and readable and, when `key` is given, was made by this key (the same inputs,
+    settings and code): a cell of older code or other graphs is not complete."""
+    record = read_record(folder)
+    if record is None:
+        return False
+    if key is not None and record.get("key") != key:
+        log.info("cell %s: made with key %s, expected %s: runs again", folder, record.get("key"), key)
+        return False
+    return True
 
 
 def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None,
@@ -51,10 +81,12 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     if not threshold >= 0:
         raise StudyError(f"threshold {threshold}: expected 0 (no edges), a distance in metres > 0, or inf")
     folder = cell_folder(study, method, scenario, threshold, seed, out_dir)
-    if is_complete(folder) and not force:
+    key = cell_key(study, method, scenario, threshold, seed)
+    if is_complete(folder, key) and not force:
         log.info("cell %s already complete", folder)
         return read_json(folder / "cell.json")
     folder.mkdir(parents=True, exist_ok=True)
+    (folder / "cell.json").unlink(missing_ok=True)  # a record of other inputs or code: gone before new files land
     torch.set_num_threads(study.threads)
     timings: dict[str, float] = {}
     history = None
@@ -67,12 +99,13 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         split = {k: [graph.at_threshold(g, threshold, both) for g in v] for k, v in graphs.items()}
         timings["graphs_s"] = time.perf_counter() - t
         t = time.perf_counter()
-        result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads)
+        result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads,
+                           deterministic=study.deterministic)
         history = pd.DataFrame(result.history)
         timings["train_s"] = time.perf_counter() - t
         t = time.perf_counter()
         emb = gcn.embed(result.model, split["test"]).numpy()
-        state = result.model.state_dict()
+        state = {k: v.detach().cpu() for k, v in result.model.state_dict().items()}  # loadable on any machine
         test = split["test"]
         frames, settings = [g.frame for g in test], [g.setting for g in test]
         extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history),
@@ -96,7 +129,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
 
     sc = study.scenarios.get(scenario)
     record = {
-        "method": method, "kind": kind,
+        "method": method, "kind": kind, "key": key,
         "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario, "threshold": paths.threshold_json(threshold),
         "seed": int(seed), "study": study.name, "study_file": study.path,
         "scenario_label": sc.label if sc else "RGB only (no graph)",
@@ -122,7 +155,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     return record
 
 
-def copy_cell(source: Path, folder: Path, threshold: float, source_name: str) -> dict:
+def copy_cell(source: Path, folder: Path, threshold: float, source_name: str, key: Optional[str] = None) -> dict:
     """The results of the cell in `source` as those of `threshold` (the two have identical scene graphs): its files
     copied, `cell.json` with this threshold and ``same_graphs_as`` naming the source (written last, as always)."""
     t = time.perf_counter()
@@ -134,5 +167,7 @@ def copy_cell(source: Path, folder: Path, threshold: float, source_name: str) ->
                 shutil.copyfile(f, tmp)
     record.update(threshold=paths.threshold_json(threshold), same_graphs_as=source_name,
                   timings={"copy_s": time.perf_counter() - t})
+    if key is not None:
+        record["key"] = key  # this cell's own key (its threshold), so that `is_complete(folder, key)` holds
     write_json(folder / "cell.json", record)
     return record

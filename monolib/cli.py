@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -23,16 +24,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="output folder")
     p = sub.add_parser("perception", help="train, evaluate and cache the perception models of a study")
     p.add_argument("study")
+    p = sub.add_parser("zoo", help="pretrain the perception networks on their own mini-Hypersim and ship them")
+    p.add_argument("study", nargs="?", default="zoo", help="the pretraining study (default params/zoo.yaml)")
+    p.add_argument("--eval", default="quick", help="the study whose test split measures them (default quick)")
+    p.add_argument("--out", default=None, help="folder of the weights and manifests (default monolib/data/zoo)")
+    p.add_argument("--only", nargs="*", default=None, help="train only these networks")
     p = sub.add_parser("fidelity", help="compare a study's ground-truth scene graphs with real Hypersim (fidelity.md)")
     p.add_argument("study")
     p = sub.add_parser("index", help="store the embeddings of a study's test frames as a localization database")
     p.add_argument("study")
     p.add_argument("--out", required=True, help="database folder")
-    p.add_argument("--method", default=None, help="graph method whose best predicted-input cell encodes (default: any)")
+    p.add_argument("--method", default=None, help="graph method of the study (gcn or a variant) whose best "
+                   "predicted-input cell encodes (default: any); another name is an error")
     p = sub.add_parser("localize", help="find the setting of RGB images (PNG/JPEG) in a database")
     p.add_argument("images", nargs="+")
     p.add_argument("--db", required=True)
-    p.add_argument("--k", type=int, default=5)
+    p.add_argument("--k", type=int, default=None, help="nearest settings to list: 1 to the database's number of "
+                   "settings (outside that range: an error, not a clamp; default 5, or all of a smaller database)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p = sub.add_parser("bench", help="benchmarks: rendering, per-frame stages, graph construction, kNN")
     p.add_argument("--width", type=int, default=256)
@@ -62,6 +70,14 @@ def main(argv: list[str] | None = None) -> int:
             print(perception.run(spec).to_string(index=False))
             perception.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
             print(f"figures: {paths.figures_dir(spec.name)}")
+        elif args.command == "zoo":
+            from monolib import zoo
+
+            done = zoo.run(load_study(args.study), load_study(args.eval), Path(args.out) if args.out else None,
+                           only=args.only)
+            for name, m in done.items():
+                print(f"{name}: {m['file']} {m['bytes'] / 1e6:.1f} MB sha256 {m['sha256'][:12]} "
+                      f"test {json.dumps({k: round(v, 4) for k, v in m['test_metrics'].items() if isinstance(v, float)})}")
         elif args.command == "fidelity":
             from monolib import fidelity
 
@@ -95,6 +111,11 @@ def main(argv: list[str] | None = None) -> int:
         if isinstance(exc, (LocalizeError, DataFileError)):
             print(f"error: {exc}", file=sys.stderr)
             return 2
+        from monolib.study import NotebookFailed
+
+        if isinstance(exc, NotebookFailed):  # the notebook's cell and path say it all; the runner's stack does not
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
         raise
     return 0
 

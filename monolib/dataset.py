@@ -21,6 +21,16 @@ def ensure_dataset(study: Study, progress: bool = True) -> HypersimDataset:
     return open_dataset(study)
 
 
+def dataset_key(study: Study) -> str:
+    """Cache key of the study's frames: the dataset parameters, the seed and, for a rendered mini-Hypersim, the
+    version of the generator's code (`monolib.versions`). Part of every later stage's key."""
+    from monolib.params import key_of
+    from monolib.versions import code_version
+
+    code = code_version("dataset") if study.dataset.source == "synth" else None
+    return key_of({"dataset": study.dataset, "seed": study.seed, "code": code})
+
+
 def open_dataset(study: Study) -> HypersimDataset:
     return HypersimDataset(study.dataset_root, study.metadata_dir)
 

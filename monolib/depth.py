@@ -279,7 +279,7 @@ def depth_loss(log_pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.5, grad_
 
 def load_cache(frames, height: int, width: int, progress: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """(N, 3, h, w) uint8 images and (N, h, w) float32 planar depth (nearest resize, NaN kept)."""
-    from tqdm.auto import tqdm
+    from monolib.progress import tqdm
 
     imgs = np.zeros((len(frames), height, width, 3), np.uint8)
     deps = np.full((len(frames), height, width), np.nan, np.float32)
@@ -343,10 +343,11 @@ def evaluate_cached(model, x: torch.Tensor, d: torch.Tensor, batch_size: int = 1
 
 
 def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
-          max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None):
+          max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None,
+          deterministic: bool = True):
     """Train with `depth_loss` (`segmentation.fit`); keep the epoch with the best validation delta<1.25.
     Returns (model, history)."""
-    gen = set_seed(seed)
+    gen = set_seed(seed, deterministic)
     model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
     t0 = time.perf_counter()

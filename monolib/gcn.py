@@ -142,12 +142,13 @@ def batch_hard_loss(z: torch.Tensor, settings: np.ndarray, margin: float) -> tor
 
 
 def embed(model: GraphEncoder, graphs: list[Data], batch_size: int = 256) -> torch.Tensor:
-    """(N, out) embeddings of graphs, in order."""
+    """(N, out) embeddings of graphs, in order, on the CPU (the model runs on the device of its weights)."""
     model.eval()
+    dev = next(model.parameters()).device
     out = []
     with torch.inference_mode():
         for batch in DataLoader(graphs, batch_size=batch_size, shuffle=False):
-            out.append(model(batch))
+            out.append(model(batch.to(dev)).cpu())
     return torch.cat(out) if out else torch.zeros((0, model.out_channels))
 
 
@@ -155,7 +156,7 @@ def leave_one_out_recall(emb: torch.Tensor, settings: np.ndarray) -> float:
     """Share of graphs whose nearest other graph is of the same setting (validation metric)."""
     d = torch.cdist(emb, emb)
     d.fill_diagonal_(float("inf"))
-    nn_idx = d.argmin(dim=1).numpy()
+    nn_idx = d.argmin(dim=1).cpu().numpy()
     return float((np.asarray(settings)[nn_idx] == np.asarray(settings)).mean())
 
 
@@ -201,13 +202,17 @@ class TrainResult:
 
 
 def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed: int, threads: int = 2,
-          progress: bool = False) -> TrainResult:
+          progress: bool = False, deterministic: bool = True) -> TrainResult:
     """Train the encoder with the triplet loss; keep the state with the best validation recall@1 (early stop)."""
+    from monolib.device import device, seed_everything
+
     torch.set_num_threads(threads)
-    torch.manual_seed(seed)
+    seed_everything(seed, deterministic)
     rng = np.random.default_rng(seed)
+    dev = device()
     model = GraphEncoder(spec)
     model.set_colour_stats(train_graphs)
+    model.to(dev)
     opt = torch.optim.Adam(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
     loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
     settings = np.array([g.setting for g in train_graphs])
@@ -219,7 +224,7 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
         losses, seen = [], 0
         if spec.mining == "batch_hard":
             for idx in batch_hard_batches(settings, spec.batch_size, rng):
-                z = model(Batch.from_data_list([train_graphs[i] for i in idx]))
+                z = model(Batch.from_data_list([train_graphs[i] for i in idx]).to(dev))
                 loss = batch_hard_loss(z, settings[idx], spec.margin)
                 opt.zero_grad()
                 loss.backward()
@@ -233,7 +238,7 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
                 idx = perm[s : s + spec.batch_size]
                 b = len(idx)
                 batch = Batch.from_data_list([train_graphs[i] for i in np.concatenate([a[idx], p[idx], n[idx]])])
-                z = model(batch)
+                z = model(batch.to(dev))
                 loss = loss_fn(z[:b], z[b : 2 * b], z[2 * b :])
                 opt.zero_grad()
                 loss.backward()

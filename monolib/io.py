@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import tempfile
 from contextlib import contextmanager
@@ -10,6 +11,8 @@ from typing import Any, Iterator
 
 import h5py
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 
 @contextmanager
@@ -56,6 +59,34 @@ def write_h5(path: str | os.PathLike, array: np.ndarray, compression: int | None
                 f.create_dataset("dataset", data=array)
             else:
                 f.create_dataset("dataset", data=array, compression="gzip", compression_opts=compression)
+
+
+def load_cached(path: str | os.PathLike, read, what: str = "cached file") -> Any:
+    """The one reader of a cached artifact (a model, a graphs file, a cell's record): ``read(path)``, or None when
+    the file is absent. A file that cannot be read (cut short by a full disk or a killed copy, not the expected
+    format) is removed with a warning naming it, and None is returned: the caller recomputes it. `read` should
+    raise on content it does not expect (a missing key), not only on bytes it cannot parse."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        return read(path)
+    except Exception as exc:  # torch/pickle/json/h5py each raise their own types on truncated files
+        log.warning("%s: unreadable %s (%s: %s); removed, it will be recomputed", path, what, type(exc).__name__,
+                    str(exc)[:200])
+        path.unlink(missing_ok=True)
+        return None
+
+
+def read_json_dict(path: str | os.PathLike, required: tuple[str, ...] = ()) -> dict:
+    """A JSON object with the `required` keys; ValueError otherwise (for `load_cached`)."""
+    obj = read_json(path)
+    if not isinstance(obj, dict):
+        raise ValueError(f"expected a JSON object, got {type(obj).__name__}")
+    lacking = [k for k in required if k not in obj]
+    if lacking:
+        raise ValueError(f"no key {', '.join(lacking)}")
+    return obj
 
 
 class DataFileError(RuntimeError):

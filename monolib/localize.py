@@ -6,6 +6,11 @@ best cell whose scenario uses predicted depth and predicted semantics, since a n
 `monolib localize IMAGE... --db DB` runs segmentation, depth, graph and encoder on each image and prints the
 nearest settings. A new image is centre-cropped to 4:3, resized to the study's resolution and treated as a
 Hypersim canonical camera (60 degree horizontal field of view).
+
+Every bad input is one `LocalizeError` naming the file or option and what was expected (the command prints it as one
+``error:`` line and exits with status 2): no database folder or a database file missing, `index` on a study without
+a finished cell, an unknown `--method`, a database whose scenario or method is no longer in its study file, and a
+`--k` outside 1 .. the number of settings in the database (see `localize`).
 """
 from __future__ import annotations
 
@@ -19,11 +24,12 @@ import pandas as pd
 import torch
 
 from monolib import gcn, graph, paths, perception, scenegraphs
+from monolib.device import device
 from monolib.graph import scene_nodes
 from monolib.hypersim import Camera
 from monolib.io import atomic_path, read_json, write_json, write_text
 from monolib.params import PAPER, Study, load_study
-from monolib.report import cell_metrics
+from monolib.results import cell_metrics
 
 
 class LocalizeError(RuntimeError):
@@ -56,6 +62,9 @@ def to_study_frame(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
 def pick_cell(study: Study, method: str | None = None) -> dict:
     """The finished graph-method cell (of `method`, or of any) with the best recall@1 (``paper`` protocol) among
     scenarios with predicted depth and predicted semantics (what a new image has)."""
+    if method is not None and method not in study.graph_methods():
+        raise LocalizeError(f"{study.path}: --method {method}: not a graph method of study {study.name}; expected one "
+                            f"of {', '.join(study.graph_methods())}")
     best = None
     wanted = [method] if method else study.graph_methods()
     files = [f for m in wanted for f in sorted((paths.study_dir(study.name) / "cells" / m).glob("*/cell.json"))]
@@ -82,26 +91,66 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     spec = study.gcn_spec(c["method"])
     threshold = float(c["threshold"])  # "inf" reads as inf
     model = gcn.GraphEncoder(spec)
-    model.load_state_dict(torch.load(Path(c["folder"]) / "model.pt", weights_only=True))
+    model.load_state_dict(torch.load(Path(c["folder"]) / "model.pt", map_location="cpu", weights_only=True))
+    model.to(device())
     test = [graph.at_threshold(g, threshold, spec.edges == "both")
             for g in scenegraphs.load(study, c["scenario"])["test"]]
     emb = gcn.embed(model, test).numpy().astype(np.float32)
+    return write_database(out, study, c, model, [g.frame for g in test], [g.setting for g in test], emb)
+
+
+META_KEYS = ("study", "study_file", "cell", "method", "scenario", "threshold", "seed", "models", "width", "height")
+
+
+def write_database(out: str | Path, study: Study, cell: dict, model: gcn.GraphEncoder, frames: list[str],
+                   settings: list[str], embeddings: np.ndarray) -> Path:
+    """The database files: `embeddings.npy` (one row per frame), `frames.csv` (frame, setting), `encoder.pt` and
+    `meta.json` (study, cell, encoder and perception models). `cell` is the cell.json (with its ``folder``)."""
+    out = Path(out)
+    sc = study.scenarios[cell["scenario"]]
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "embeddings.npy") as tmp:
         with open(tmp, "wb") as fh:
-            np.save(fh, emb)
-    write_text(out / "frames.csv", pd.DataFrame({"frame": [g.frame for g in test],
-                                                 "setting": [g.setting for g in test]}).to_csv(index=False))
+            np.save(fh, np.asarray(embeddings, np.float32))
+    write_text(out / "frames.csv", pd.DataFrame({"frame": frames, "setting": settings}).to_csv(index=False))
     with atomic_path(out / "encoder.pt") as tmp:
-        torch.save(model.state_dict(), tmp)
+        torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, tmp)
     write_json(out / "meta.json", {
-        "study": study.name, "study_file": study.path, "cell": c["folder"], "method": c["method"],
-        "scenario": c["scenario"],
-        "threshold": c["threshold"], "seed": c["seed"], "cell_recall@1": cell_metrics(c)[PAPER]["recall@1"],
+        "study": study.name, "study_file": study.path, "cell": cell["folder"], "method": cell["method"],
+        "scenario": cell["scenario"],
+        "threshold": cell["threshold"], "seed": cell["seed"], "cell_recall@1": cell_metrics(cell)[PAPER]["recall@1"],
         "models": {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)},
-        "width": study.dataset.width, "height": study.dataset.height, "frames": len(test),
+        "width": study.dataset.width, "height": study.dataset.height, "frames": len(frames),
     })
     return out
+
+
+def read_database(db: str | Path) -> tuple[dict, pd.DataFrame, np.ndarray]:
+    """(meta, frames, embeddings) of a database folder, checked; no model is loaded."""
+    db = Path(db)
+    hint = f"build the database with `monolib index STUDY --out {db}`"
+    if not db.is_dir():
+        raise LocalizeError(f"{db}: no database folder; {hint}")
+    for name in ("meta.json", "embeddings.npy", "frames.csv", "encoder.pt"):
+        if not (db / name).is_file():
+            raise LocalizeError(f"{db / name}: missing; {hint}")
+    try:
+        meta = read_json(db / "meta.json")
+    except ValueError as exc:
+        raise LocalizeError(f"{db / 'meta.json'}: not valid JSON ({exc}); {hint}") from None
+    missing = [k for k in META_KEYS if not isinstance(meta, dict) or k not in meta]
+    if missing:
+        raise LocalizeError(f"{db / 'meta.json'}: no key {missing[0]!r}; expected the keys {', '.join(META_KEYS)}")
+    try:
+        frames = pd.read_csv(db / "frames.csv")
+        emb = np.load(db / "embeddings.npy")
+    except Exception as exc:
+        raise LocalizeError(f"{db}: unreadable frames.csv or embeddings.npy ({exc}); {hint}") from None
+    if not {"frame", "setting"} <= set(frames.columns) or emb.ndim != 2 or len(emb) != len(frames):
+        raise LocalizeError(f"{db}: frames.csv (columns {list(frames.columns)}, {len(frames)} rows) and embeddings.npy "
+                            f"(shape {list(emb.shape)}) disagree; expected columns frame, setting and one embedding "
+                            f"row per frame")
+    return meta, frames, emb
 
 
 @dataclass
@@ -117,23 +166,26 @@ class Localizer:
     @staticmethod
     def open(db: str | Path) -> "Localizer":
         db = Path(db)
-        for name in ("meta.json", "embeddings.npy", "frames.csv", "encoder.pt"):
-            if not (db / name).is_file():
-                raise LocalizeError(f"{db / name}: missing; build the database with `monolib index STUDY --out {db}`")
-        meta = read_json(db / "meta.json")
+        meta, frames, emb = read_database(db)
         study = load_study(meta["study_file"], check_files=False)
+        rebuild = f"rebuild the database with `monolib index {study.name} --out {db}`"
+        if meta["scenario"] not in study.scenarios:
+            raise LocalizeError(f"{db / 'meta.json'}: scenario {meta['scenario']!r} is not in the study file "
+                                f"{study.path} (its scenarios: {', '.join(study.scenarios)}); {rebuild}")
+        if meta["method"] not in study.graph_methods():
+            raise LocalizeError(f"{db / 'meta.json'}: method {meta['method']!r} is not a graph method of the study file "
+                                f"{study.path} (its graph methods: {', '.join(study.graph_methods())}); {rebuild}")
         sc = study.scenarios[meta["scenario"]]
         now = {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)}
         if now != meta["models"]:
             raise LocalizeError(f"{db / 'meta.json'}: the database was made by models {meta['models']}, but study "
                                 f"{study.name} now has {now}; rebuild it with `monolib index`")
-        seg = perception.load_trained(study, sc.semantic)
+        seg = perception.load_trained(study, sc.semantic)  # an untrained model: one DataFileError naming its file
         dep = perception.load_trained(study, sc.depth)
         encoder = gcn.GraphEncoder(study.gcn_spec(meta["method"]))
-        encoder.load_state_dict(torch.load(db / "encoder.pt", weights_only=True))
-        encoder.eval()
-        emb = torch.from_numpy(np.load(db / "embeddings.npy"))
-        return Localizer(study, meta, seg, dep, encoder, emb, pd.read_csv(db / "frames.csv"))
+        encoder.load_state_dict(torch.load(db / "encoder.pt", map_location="cpu", weights_only=True))
+        encoder.to(device()).eval()  # the networks run on the GPU when there is one; embeddings come back on the CPU
+        return Localizer(study, meta, seg, dep, encoder, torch.from_numpy(emb), frames)
 
     def stages(self, rgb: np.ndarray, timings: dict | None = None) -> torch.Tensor:
         """The per-image pipeline: segmentation, depth, back-projection + graph, encoder -> (64,) embedding."""
@@ -169,7 +221,24 @@ class Localizer:
                 for i, r in enumerate(best.itertuples())]
 
 
-def localize(images: list[str], db: str | Path, k: int = 5) -> list[dict]:
+DEFAULT_K = 5
+
+
+def localize(images: list[str], db: str | Path, k: int | None = None) -> list[dict]:
+    """The `k` nearest settings of each image (default: `DEFAULT_K`, or every setting of a smaller database).
+
+    A `k` given must be 1 .. the number of settings in the database, else one `LocalizeError` before any model is
+    loaded. A larger one is an error, not clamped: the localizer ranks settings (each by its closest frame), so it
+    cannot list more than the database holds, and a clamp would silently print fewer matches than asked (a script
+    reading ``--json`` would get fewer rows than it asked for); the error says the largest k the database allows."""
+    if k is not None and k < 1:
+        raise LocalizeError(f"--k {k}: expected at least 1 (the number of nearest settings to list)")
+    _, frames, _ = read_database(db)
+    n = int(frames["setting"].nunique())
+    if k is None:
+        k = min(DEFAULT_K, n)
+    elif k > n:
+        raise LocalizeError(f"--k {k}: the database {db} holds {n} settings; expected 1 to {n}")
     loc = Localizer.open(db)
     rgbs = [read_image(p) for p in images]  # every path checked before any work
     return [{"image": str(p), "matches": loc.query(rgb, k)} for p, rgb in zip(images, rgbs)]

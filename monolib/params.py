@@ -55,6 +55,7 @@ class SegmentationSpec:
     train_width: int = 256
     val_settings: int = 4                    # held-out training settings for model selection
     checkpoint: Optional[str] = None         # a .pt state dict to load instead of training
+    weights: Optional[str] = None            # the project's shipped weights (monolib/data/zoo/<name>.pt, `make zoo`)
 
 
 @dataclass
@@ -72,6 +73,7 @@ class DepthSpec:
     val_settings: int = 4
     checkpoint: Optional[str] = None         # an original AdelaiDepth LeReS checkpoint (weights under depth_model.)
     decoder_width: int = 64                  # LeReS-style decoder channels (LeReS itself: 256); ignored with checkpoint
+    weights: Optional[str] = None            # the project's shipped weights (monolib/data/zoo/<name>.pt, `make zoo`)
 
 
 @dataclass
@@ -150,6 +152,7 @@ class Study:
     threads: int = 2
     jobs: int = 2                            # parallel papermill workers for the grid
     cell_timeout: int = 1800                 # seconds per notebook cell
+    deterministic: bool = True               # seeds + deterministic kernels (monolib.device.seed_everything)
     graphs_root: Optional[str] = None        # published graph files (train/ and test/) instead of a dataset
     extends: Optional[str] = None            # a base study: its file is the default of every key, and its dataset,
                                              # perception models, predictions and graphs are reused (runs/<base>/)
@@ -363,6 +366,17 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"perception.depth[{i}].checkpoint", f"file not found: {resolve_path(d.checkpoint, study.path)}")
     if seg.checkpoint and not resolve_path(seg.checkpoint, study.path).is_file():
         bad("perception.segmentation.checkpoint", f"file not found: {resolve_path(seg.checkpoint, study.path)}")
+    for where, spec, task in [("perception.segmentation", seg, "segmentation")] + \
+            [(f"perception.depth[{i}]", d, "depth") for i, d in enumerate(study.perception.depth)]:
+        if spec.weights and spec.checkpoint:
+            bad(f"{where}.weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
+        if spec.weights and check_files:
+            from monolib import zoo
+
+            try:
+                zoo.check_architecture(spec, task, resolve_path(spec.weights, study.path), f"{where}.weights")
+            except zoo.WeightsError as exc:
+                raise StudyError(str(exc)) from None
     for sname, sc in study.scenarios.items():
         if sc.depth != "gt" and sc.depth not in [d.name for d in study.perception.depth]:
             bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {[d.name for d in study.perception.depth]}, got {sc.depth!r}")

@@ -46,10 +46,21 @@ def _spec(study: Study, name: str):
 
 
 def model_key(study: Study, name: str) -> str:
-    """Cache key of one model: its spec, the dataset parameters and the seed (GCN/scenario settings excluded)."""
+    """Cache key of one model: its spec, the dataset's key, the seed, the device and deterministic mode, and the
+    version of the perception code (`monolib.versions`); GCN and scenario settings are not part of it."""
+    from monolib.dataset import dataset_key
+    from monolib.device import device
+    from monolib.versions import code_version
+
     spec, task = _spec(study, name)
-    return key_of({"task": task, "spec": dataclasses.asdict(spec), "dataset": dataclasses.asdict(study.dataset),
-                   "seed": study.seed})
+    shipped = None
+    if spec.weights:  # the shipped file's identity (its manifest's sha256, checked when it is loaded)
+        from monolib import zoo
+
+        shipped = zoo.read_manifest(resolve_path(spec.weights, study.path))["sha256"]
+    return key_of({"task": task, "spec": dataclasses.asdict(spec), "dataset": dataset_key(study),
+                   "seed": study.seed, "device": device().type, "deterministic": study.deterministic,
+                   "code": code_version("perception"), "weights": shipped})
 
 
 def model_tag(study: Study, name: str) -> str:
@@ -73,13 +84,39 @@ def prediction_path(study: Study, name: str, frame) -> Path:
 
 # ---- readers for the graph stage ---------------------------------------------------------------------------
 
+class PredictionsMissing(io.DataFileError):
+    """A model's predictions, which a scenario needs, are missing or unreadable (the message names the command)."""
+
+
+def missing_predictions(study: Study, name: str, cause) -> PredictionsMissing:
+    """The error of a missing or unreadable prediction of model `name`; an unreadable file is removed so that the
+    perception stage predicts that frame again."""
+    path = getattr(cause, "filename", None) or str(cause).split(": ")[0]
+    p = Path(path)
+    if p.is_file() and p.suffix == ".hdf5":  # present but unreadable (cut short): predict it again
+        p.unlink()
+    return PredictionsMissing(
+        f"model {name!r} of study {study.name!r}: missing or unreadable prediction ({cause}). The graphs of a scenario "
+        f"with predicted depth or semantics need every prediction; make them with `monolib perception "
+        f"{study.path or study.name}` (or `monolib study {study.path or study.name}`, which runs perception first)")
+
+
+def check_predictions(study: Study, name: str, frames) -> None:
+    """`PredictionsMissing` unless model `name` has a prediction file for every frame (checked before a graph build,
+    which then reads each file and reports one that is cut short)."""
+    if not (model_dir(study, name) / "metrics.json").is_file():
+        raise missing_predictions(study, name, f"{model_dir(study, name)}: the model has not been trained or evaluated")
+    lacking = [f for f in frames if not prediction_path(study, name, f).is_file()]
+    if lacking:
+        raise missing_predictions(study, name, f"{prediction_path(study, name, lacking[0])}: no such file "
+                                               f"({len(lacking)} of {len(frames)} frames lack a prediction)")
+
+
 def _read_pred(path: Path, study: Study, name: str) -> np.ndarray:
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path}: no cached prediction of model {name!r} for this frame; run the perception stage "
-            f"(monolib.perception.run(load_study({study.name!r}))) first"
-        )
-    return io.read_h5(path)
+    try:
+        return io.read_h5(path)
+    except io.DataFileError as exc:
+        raise missing_predictions(study, name, exc) from None
 
 
 def semantic_source(study: Study, name: str) -> Callable:
@@ -148,15 +185,16 @@ def _threads(n: int):
         torch.set_num_threads(old)
 
 
-def _complete(study: Study, name: str, keys: list[str]) -> bool:
-    marker = predictions_dir(study, name) / "_complete.json"
-    if not marker.is_file() or not (model_dir(study, name) / "metrics.json").is_file():
+def _complete(study: Study, name: str, frames) -> bool:
+    """Trained, evaluated and every frame predicted: the marker and the metrics are readable and every prediction
+    file is present (one removed as unreadable by the graph stage makes the model incomplete again)."""
+    marker = io.load_cached(predictions_dir(study, name) / "_complete.json",
+                            lambda p: io.read_json_dict(p, ("frames",)), "perception marker")
+    metrics = io.load_cached(model_dir(study, name) / "metrics.json", io.read_json_dict, "perception metrics")
+    if marker is None or metrics is None:
         return False
-    try:
-        done = set(io.read_json(marker)["frames"])
-    except (ValueError, KeyError, OSError):
-        return False
-    return set(keys) <= done
+    return {f.key for f in frames} <= set(marker["frames"]) and all(
+        prediction_path(study, name, f).is_file() for f in frames)
 
 
 def _train_or_load(study: Study, name: str, sel, progress: bool):
@@ -168,10 +206,21 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
     mod = seg if task == "segmentation" else dep
     mdir = model_dir(study, name)
     mpath, hpath = mdir / "model.pt", mdir / "history.json"
-    if mpath.is_file() and hpath.is_file():
-        return mod.load_model(spec, mpath), io.read_json(hpath), "loaded"
+    history = io.load_cached(hpath, lambda p: io.read_json_dict(p, ("epochs",)), f"training history of {name}")
+    model = io.load_cached(mpath, lambda p: mod.load_model(spec, p), f"weights of {name}") if history else None
+    if model is not None:
+        return model, history, "loaded"
     t0 = time.perf_counter()
-    if spec.checkpoint and task == "segmentation":
+    if spec.weights:  # the project's zoo: inference only
+        from monolib import zoo
+
+        model = zoo.load(spec, task, spec.weights, study.path)
+        manifest = zoo.read_manifest(resolve_path(spec.weights, study.path))
+        history = {"epochs": [], "source": str(spec.weights), "sha256": manifest["sha256"],
+                   "pretrain_seconds": manifest.get("train_seconds"), "train_seconds": 0.0}
+        print(f"perception: {name} from the zoo ({spec.weights}, trained {manifest.get('train_seconds')} s on "
+              f"{manifest.get('device')})", flush=True)
+    elif spec.checkpoint and task == "segmentation":
         model = seg.load_model(spec, resolve_path(spec.checkpoint, study.path))
         history = {"epochs": [], "source": str(spec.checkpoint), "train_seconds": 0.0}
     elif spec.checkpoint:
@@ -183,7 +232,8 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
     else:
         print(f"perception: training {name} ({task}, {spec.backbone}, {spec.epochs} epochs, "
               f"{len(sel.train)} train / {len(sel.val)} val frames at {spec.train_width}x{spec.train_height})")
-        model, history = mod.train(spec, sel.train, sel.val, seed=study.seed, progress=progress)
+        model, history = mod.train(spec, sel.train, sel.val, seed=study.seed, progress=progress,
+                                   deterministic=study.deterministic)
     history["model"] = name
     mod.save_model(model, mpath)
     io.write_json(hpath, history)
@@ -192,7 +242,7 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
 
 def _predict_all(study: Study, name: str, model, frames, progress: bool) -> tuple[int, float]:
     """Predict the frames whose prediction file is missing; returns (frames predicted, seconds of inference)."""
-    from tqdm.auto import tqdm
+    from monolib.progress import tqdm
 
     from monolib import depth as dep
     from monolib import segmentation as seg
@@ -223,10 +273,9 @@ def _evaluate(study: Study, name: str, test) -> dict:
 
 def _rows(study: Study, name: str) -> list[dict]:
     spec, task = _spec(study, name)
-    mdir = model_dir(study, name)
-    if not (mdir / "metrics.json").is_file():
+    m = io.load_cached(model_dir(study, name) / "metrics.json", io.read_json_dict, f"test metrics of {name}")
+    if m is None:
         return []
-    m = io.read_json(mdir / "metrics.json")
     role = "DeepLabV3" if task == "segmentation" else spec.role
     keys = ["pixel_accuracy", "miou"] if task == "segmentation" else ["abs_rel", "rmse", "delta1", "median_ratio"]
     keys += ["inference_ms_per_frame"]
@@ -269,7 +318,7 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
             sel = sels[spec.val_settings]
             frames = sel.all()
             keys = [f.key for f in frames]
-            if _complete(study, name, keys):
+            if _complete(study, name, frames):
                 msg = f"perception: {tag} cached ({len(keys)} frames), nothing to do"
                 print(msg)
                 status[name] = "cached"
@@ -278,7 +327,7 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
             n_pred, secs = _predict_all(study, name, model, frames, progress)
             metrics = _evaluate(study, name, sel.test)
             old = model_dir(study, name) / "metrics.json"
-            old_ms = io.read_json(old).get("inference_ms_per_frame") if old.is_file() else None
+            old_ms = (io.load_cached(old, io.read_json_dict, f"test metrics of {name}") or {}).get("inference_ms_per_frame")
             metrics.update(
                 train_seconds=float(history.get("train_seconds", float("nan"))),
                 inference_ms_per_frame=(1000.0 * secs / n_pred) if n_pred else old_ms,
@@ -325,10 +374,12 @@ def plot_training(study: Study, save: bool = True):
     """Per-epoch training loss and validation metric of every trained model -> `perception_training.png`."""
     import matplotlib.pyplot as plt
 
-    names = [n for n in study.model_names() if (model_dir(study, n) / "history.json").is_file()]
+    histories = {n: io.load_cached(model_dir(study, n) / "history.json", io.read_json_dict, f"training history of {n}")
+                 for n in study.model_names()}
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    for n in names:
-        h = io.read_json(model_dir(study, n) / "history.json")
+    for n, h in histories.items():
+        if h is None:
+            continue
         ep = [r["epoch"] for r in h.get("epochs", [])]
         if not ep:
             continue
@@ -385,23 +436,40 @@ def plot_depth_examples(study: Study, n: int = 3, save: bool = True, dataset=Non
 
 
 def plot_semantic_examples(study: Study, n: int = 3, save: bool = True, dataset=None):
-    """Figure 4: RGB, ground-truth semantics and the DeepLabV3 prediction in the NYU40 palette."""
+    """Figure 4: RGB, ground-truth semantics and the DeepLabV3 prediction in the NYU40 palette, with a legend of
+    the NYU40 classes present in the shown frames (ground truth or prediction; black: unlabelled)."""
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
 
-    from monolib.labels import colourize
+    from monolib import labels
 
     frames = _test_frames(study, n, dataset)
     name = study.perception.segmentation.name
     pred = semantic_source(study, name)
     fig, axes = plt.subplots(len(frames), 3, figsize=(7.5, 1.9 * len(frames) + 0.3), squeeze=False)
+    present: set[int] = set()
+    unlabelled = False
     for r, f in enumerate(frames):
-        for c, (img, title) in enumerate([(f.rgb, "RGB"), (colourize(f.semantic), "ground truth"),
-                                          (colourize(pred(f)), f"DeepLabV3 ({name})")]):
+        gt, pr = f.semantic, pred(f)
+        for semantic in (gt, pr):
+            ids = np.unique(semantic)
+            known = (ids >= 1) & (ids <= labels.NUM_CLASSES)
+            present |= {int(i) for i in ids[known]}
+            unlabelled |= bool((~known).any())
+        for c, (img, title) in enumerate([(f.rgb, "RGB"), (labels.colourize(gt), "ground truth"),
+                                          (labels.colourize(pr), f"DeepLabV3 ({name})")]):
             axes[r, c].imshow(img)
             axes[r, c].set_xticks([]), axes[r, c].set_yticks([])
             if r == 0:
                 axes[r, c].set_title(title, fontsize=9)
     fig.tight_layout()
+    handles = [Patch(facecolor=labels.COLOURS[i - 1] / 255.0, edgecolor="0.5", linewidth=0.4, label=labels.name(i))
+               for i in sorted(present)]
+    if unlabelled:
+        handles.append(Patch(facecolor="black", edgecolor="0.5", linewidth=0.4, label="unlabelled"))
+    if handles:
+        fig.legend(handles=handles, loc="center left", bbox_to_anchor=(1.0, 0.5), fontsize=7, frameon=False,
+                   title="NYU40 classes shown", title_fontsize=8, ncol=1 + (len(handles) - 1) // 20)
     if save:
         io.save_figure(fig, paths.figures_dir(study.name) / "fig4_semantics.png")
     return fig
@@ -423,7 +491,9 @@ def load_trained(study: Study, name: str):
 
     spec, task = _spec(study, name)
     path = model_dir(study, name) / "model.pt"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: model {name!r} is not trained; run `monolib perception {study.name}` first")
-    model = (seg if task == "segmentation" else dep).load_model(spec, path)
+    model = io.load_cached(path, lambda p: (seg if task == "segmentation" else dep).load_model(spec, p),
+                           f"weights of {name}")
+    if model is None:
+        raise io.DataFileError(f"{path}: model {name!r} is not trained (or its file was unreadable); run "
+                               f"`monolib perception {study.path or study.name}` first")
     return model.eval()

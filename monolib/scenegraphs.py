@@ -15,11 +15,11 @@ import numpy as np
 import pandas as pd
 import torch
 from torch_geometric.data import Data
-from tqdm.auto import tqdm
+from monolib.progress import tqdm
 
 from monolib import dataset as dataset_mod
 from monolib.graph import NODE_FEATURES, complete_graph, scene_nodes
-from monolib.io import DataFileError, atomic_path
+from monolib.io import DataFileError, atomic_path, load_cached
 from monolib.params import Study, key_of
 
 log = logging.getLogger(__name__)
@@ -27,16 +27,20 @@ SPLITS = ("train", "val", "test")
 
 
 def scenario_key(study: Study, scenario: str) -> str:
-    """Cache key of a scenario's graphs: the dataset, the frame selection and the two sources' model keys."""
+    """Cache key of a scenario's graphs: the dataset's key, the frame selection, the two sources' model keys and
+    the version of the graph code (`monolib.versions`)."""
     from monolib import perception
 
     sc = study.scenarios[scenario]
     sources = {}
     for role, name in (("depth", sc.depth), ("semantic", sc.semantic)):
         sources[role] = "gt" if name == "gt" else perception.model_key(study, name)
-    return key_of({"dataset": study.dataset, "graphs_root": study.graphs_root, "seed": study.seed,
+    from monolib.dataset import dataset_key
+    from monolib.versions import code_version
+
+    return key_of({"dataset": dataset_key(study), "graphs_root": study.graphs_root, "seed": study.seed,
                    "protocol": study.protocol, "val": study.gcn.val_settings, "sources": sources,
-                   "depth_scale": sc.depth_scale, "version": 1})
+                   "depth_scale": sc.depth_scale, "code": code_version("graphs")})
 
 
 def graphs_path(study: Study, scenario: str) -> Path:
@@ -60,7 +64,7 @@ def _frame_nodes(args) -> list[tuple[np.ndarray, np.ndarray]]:
     def source(kind: str, name: str):
         if (kind, name) not in cache:
             read = perception.depth_source(study, name) if kind == "depth" else perception.semantic_source(study, name)
-            cache[(kind, name)] = read(f)
+            cache[(kind, name)] = read(f)  # a model's missing prediction raises PredictionsMissing
         return cache[(kind, name)]
 
     out = []
@@ -69,7 +73,9 @@ def _frame_nodes(args) -> list[tuple[np.ndarray, np.ndarray]]:
         try:
             depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
             out.append(scene_nodes(f.rgb, depth, source("semantic", sc.semantic), f.camera))
-        except (DataFileError, FileNotFoundError) as exc:  # a missing Hypersim file: an empty graph, reported
+        except perception.PredictionsMissing:  # a model's prediction: never an empty graph
+            raise
+        except (DataFileError, FileNotFoundError) as exc:  # a missing file of the download: an empty graph, counted
             out.append((np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32), str(exc)))
     return out
 
@@ -90,15 +96,21 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
     if not todo:
         return out
     t0 = time.perf_counter()
+    missing: dict[str, list[str]] = {}
     if study.graphs_root:
         from monolib import published
 
         graphs = published.select(study)
         built = {sc: graphs for sc in todo}
     else:
+        from monolib import perception
+
         ds = dataset_mod.open_dataset(study)
         sel = dataset_mod.select_frames(study, ds, study.gcn.val_settings)
         frames = [(split, f) for split in SPLITS for f in getattr(sel, split)]
+        for sc in todo:  # fail before any work when a model has not predicted these frames
+            for name in {study.scenarios[sc].depth, study.scenarios[sc].semantic} - {"gt"}:
+                perception.check_predictions(study, name, [f for _, f in frames])
         jobs = [(study, todo, f.key) for _, f in frames]
         workers = max(1, min(study.dataset.workers, os.cpu_count() or 1))
         if workers > 1:
@@ -112,32 +124,50 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
         built = {}
         for i, sc in enumerate(todo):
             built[sc] = {split: [] for split in SPLITS}
-            missing = []
+            missing[sc] = []
             for (split, f), per_scenario in zip(frames, nodes):
                 x, pos, *error = per_scenario[i]
-                missing += error
+                missing[sc] += [f"{f.key}: {e}" for e in error]
                 built[sc][split].append(complete_graph(x, pos, f.setting, f.key))
-            if missing:
-                log.warning("graphs: %s: %d frames with a missing or unreadable file became empty graphs "
-                            "(first: %s)", sc, len(missing), missing[0])
+            if missing[sc]:
+                print(f"graphs: {sc}: {len(missing[sc])} frames have a missing or unreadable file of the dataset and "
+                      f"are empty graphs (counted in graph_sizes.md; first: {missing[sc][0]})", flush=True)
     seconds = time.perf_counter() - t0
     for sc in todo:
         with atomic_path(out[sc]) as tmp:
-            torch.save({"scenario": sc, "graphs": built[sc], "seconds": seconds}, tmp)
+            torch.save({"scenario": sc, "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds}, tmp)
         n = sum(len(v) for v in built[sc].values())
         log.info("graphs: %s built, %d graphs (%d scenarios in %.1f s)", sc, n, len(todo), seconds)
     return out
 
 
+def _read_graphs(path: Path) -> dict:
+    data = torch.load(path, weights_only=False)
+    if not isinstance(data, dict) or not isinstance(data.get("graphs"), dict) or set(data["graphs"]) != set(SPLITS):
+        raise ValueError(f"expected {{'graphs': {{{', '.join(SPLITS)}}}}}")
+    return data
+
+
+def load_file(study: Study, scenario: str, progress: bool = False) -> dict:
+    """The cached graphs file of a scenario (`graphs` per split, `missing` frames, `seconds`), built when absent;
+    an unreadable file (cut short) is removed with a warning and built again (`monolib.io.load_cached`)."""
+    path = graphs_path(study, scenario)
+    data = load_cached(path, _read_graphs, f"graphs file of scenario {scenario}")
+    if data is None:
+        build(study, scenario, progress)
+        data = _read_graphs(path)
+    return data
+
+
 def load(study: Study, scenario: str, progress: bool = False) -> dict[str, list[Data]]:
     """{'train': [...], 'val': [...], 'test': [...]} complete graphs of a scenario (built when missing)."""
-    return torch.load(build(study, scenario, progress), weights_only=False)["graphs"]
+    return load_file(study, scenario, progress)["graphs"]
 
 
 # ---- graph sizes per scenario and threshold (what a threshold changes) ----------------------------------------
 
 SIZE_COLUMNS = ["scenario", "label", "threshold", "test_graphs", "test_nodes", "test_edges", "test_empty",
-                "train_graphs", "train_nodes", "train_edges", "same_graphs_as"]
+                "train_graphs", "train_nodes", "train_edges", "same_graphs_as", "missing_frames"]
 
 
 def identical_thresholds(pair_len: torch.Tensor, thresholds) -> dict[float, float]:
@@ -172,14 +202,16 @@ def _scenario_thresholds(study: Study) -> dict[str, list[float]]:
 def graph_sizes(study: Study) -> pd.DataFrame:
     """Nodes and edges per graph for each scenario and threshold of the study's grid: means over the test split's
     graphs and over the training split's (training + validation settings); edges = node pairs joined (the encoder
-    reads each in both directions); ``test_empty``: test graphs without a node; ``same_graphs_as``: the smallest
+    reads each in both directions); ``test_empty``: test graphs without a node; ``missing_frames``: frames of the scenario (all splits) with a
+    missing or unreadable dataset file, each an empty graph; ``same_graphs_as``: the smallest
     threshold whose graphs (every split) are identical (`identical_thresholds`; NaN when none). Columns
     `SIZE_COLUMNS`."""
     from monolib.graph import pair_mask
 
     rows = []
     for sc, thresholds in _scenario_thresholds(study).items():
-        graphs = load(study, sc)
+        data = load_file(study, sc)
+        graphs = data["graphs"]
         parts = {"test": graphs["test"], "train": graphs["train"] + graphs["val"]}
         lengths = {k: torch.cat([g.pair_len for g in v] + [torch.zeros(0)]) for k, v in parts.items()}
         same = identical_thresholds(torch.cat(list(lengths.values())), thresholds)
@@ -193,13 +225,14 @@ def graph_sizes(study: Study) -> pd.DataFrame:
                 row[f"{k}_edges"] = float(pair_mask(lengths[k], t).sum()) / n
             row["test_empty"] = int(sum(int(g.num_nodes) == 0 for g in parts["test"]))
             row["same_graphs_as"] = same.get(t, float("nan"))
+            row["missing_frames"] = len(data.get("missing", []))
             rows.append(row)
     return pd.DataFrame(rows, columns=SIZE_COLUMNS)
 
 
 def graph_sizes_markdown(table: pd.DataFrame) -> str:
     """``graph_sizes.md``: the table of `graph_sizes` for a reader."""
-    from monolib.report import threshold_label
+    from monolib.tables import threshold_label
 
     lines = ["**Graph sizes.** Nodes and edges per scene graph for each scenario and edge threshold: means over the "
              "test split's graphs and over the training split's (training and validation settings). An edge is a node "
@@ -217,6 +250,10 @@ def graph_sizes_markdown(table: pd.DataFrame) -> str:
         same = "" if pd.isna(r.same_graphs_as) else threshold_label(float(r.same_graphs_as))
         lines.append(f"| {f'{r.scenario}: {r.label}' if first else ''} | {threshold_label(float(r.threshold))} | "
                      f"{r.test_nodes:.2f} | {r.test_edges:.2f} | {r.train_nodes:.2f} | {r.train_edges:.2f} | {same} |")
+    missing = table.groupby("scenario", sort=False)["missing_frames"].max() if "missing_frames" in table else None
+    if missing is not None and missing.sum() > 0:  # a real download with files missing: said, never silent
+        lines += ["", "**Frames with a missing or unreadable file of the dataset** (each is an empty graph in every "
+                  "threshold): " + ", ".join(f"{sc} {int(n)}" for sc, n in missing.items()) + "."]
     return "\n".join(lines) + "\n"
 
 

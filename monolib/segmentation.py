@@ -83,11 +83,11 @@ def colour_jitter(x: torch.Tensor, gen: torch.Generator, strength: float = 0.3) 
     return x.clamp(0, 255)
 
 
-def set_seed(seed: int) -> torch.Generator:
-    torch.manual_seed(seed)
-    g = torch.Generator()
-    g.manual_seed(seed)
-    return g
+def set_seed(seed: int, deterministic: bool = True) -> torch.Generator:
+    """Seed everything (`monolib.device.seed_everything`); returns the CPU generator of the training draws."""
+    from monolib.device import seed_everything
+
+    return seed_everything(seed, deterministic)
 
 
 def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Optional[Callable],
@@ -100,7 +100,7 @@ def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Op
     (record entries, selection metric; higher is better, NaN: fall back to minus the training loss). Appends one
     record per epoch to ``history["epochs"]`` and sets ``best_epoch`` and ``train_seconds``.
     """
-    from tqdm.auto import tqdm
+    from monolib.progress import tqdm
 
     opt = torch.optim.AdamW(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
     steps_per_epoch = max(1, int(np.ceil(n_train / spec.batch_size)))
@@ -209,7 +209,7 @@ def targets_from_semantic(semantic: np.ndarray) -> np.ndarray:
 
 def load_cache(frames, height: int, width: int, progress: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Read frames once: (N, 3, h, w) uint8 images and (N, h, w) uint8 class targets at training resolution."""
-    from tqdm.auto import tqdm
+    from monolib.progress import tqdm
 
     imgs = np.zeros((len(frames), height, width, 3), np.uint8)
     tgts = np.full((len(frames), height, width), IGNORE, np.uint8)
@@ -298,13 +298,14 @@ def evaluate_cached(model: nn.Module, x: torch.Tensor, y: torch.Tensor, batch_si
 
 
 def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
-          max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None):
+          max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None,
+          deterministic: bool = True):
     """Train DeepLabV3 with cross-entropy (`fit`); keep the epoch with the best validation mIoU.
 
     Returns (model, history) where history = {"epochs": [{"epoch", "train_loss", "val_pixel_accuracy",
     "val_miou", "seconds"}], "best_epoch", "train_seconds", ...}. `max_steps` stops early (tests).
     """
-    gen = set_seed(seed)
+    gen = set_seed(seed, deterministic)
     model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
     t0 = time.perf_counter()

@@ -50,9 +50,29 @@ def test_same_seed_same_embeddings(smoke, embeddings, method):
     np.testing.assert_array_equal(embeddings[method][0], again)
 
 
-def test_orb_bow_rows_are_unit_or_zero(embeddings):
-    norms = np.linalg.norm(embeddings["orb_bow"][0], axis=1)
-    assert np.allclose(norms[norms > 0], 1.0, atol=1e-5)
+def test_orb_bow_rows_are_unit_or_zero(smoke, embeddings):
+    """A row is the L2-normalised tf-idf histogram of the image's ORB words: unit length exactly when the image has
+    keypoints, zero when it has none (a flat grey image)."""
+    study, sel = smoke
+    emb, extra, _, _ = embeddings["orb_bow"]
+    has_keypoints = np.array([len(baselines.orb_descriptors(f.rgb)) > 0 for f in sel.test])
+    assert has_keypoints.mean() > 0.9  # the rendered rooms are textured: nearly every row must be a unit vector
+    norms = np.linalg.norm(emb, axis=1)
+    np.testing.assert_allclose(norms[has_keypoints], 1.0, atol=1e-5)
+    assert (emb[~has_keypoints] == 0).all() and extra["test_no_keypoints"] == int((~has_keypoints).sum())
+    assert (emb >= 0).all() and len({r.tobytes() for r in emb[has_keypoints]}) == int(has_keypoints.sum())
+    # a flat grey image (no keypoint) and a textured one (many), beside a test frame, with the same vocabulary
+    grey = np.full((96, 128, 3), 128, np.uint8)
+    rng = np.random.default_rng(0)
+    textured = np.kron(rng.integers(0, 256, (12, 16, 3)), np.ones((8, 8, 1))).astype(np.uint8)  # 8-px random tiles
+    assert len(baselines.orb_descriptors(grey)) == 0 and len(baselines.orb_descriptors(textured)) > 50
+    frames = [SimpleNamespace(rgb=grey, setting=sel.test[0].setting, key="grey"),
+              SimpleNamespace(rgb=textured, setting=sel.test[0].setting, key="textured"), sel.test[0]]
+    e, x, _, _ = baselines.embed("orb_bow", study, Selection(sel.train, sel.val, frames), 0)
+    assert (e[0] == 0).all() and x["test_no_keypoints"] == 1
+    assert np.linalg.norm(e[1]) == pytest.approx(1.0, abs=1e-5) and (e[1] > 0).sum() > 1
+    np.testing.assert_allclose(e[2], emb[0], atol=1e-6)   # a test frame describes the same in any company
+    assert not np.allclose(e[1], e[2])
 
 
 def test_black_image_does_not_crash(smoke):
@@ -83,16 +103,16 @@ def test_an_image_baseline_cell_evaluates_both_protocols(smoke, tmp_path):
 
     import pandas as pd
 
-    from monolib import cell, report
+    from monolib import cell, results
 
     study, sel = smoke
     rec = cell.run_cell(study, "color_hist", "rgb", math.inf, 0, out_dir=str(tmp_path / "cell"))
     assert list(rec["metrics"]) == ["paper", "siblings"]
     rankings = pd.read_csv(tmp_path / "cell" / "rankings.csv")
     protocol = pd.read_csv(tmp_path / "cell" / "protocol.csv")
-    counts = report.check_protocols(rankings, protocol, study.protocol.positives,
+    counts = results.check_protocols(rankings, protocol, study.protocol.positives,
                                     {"paper": study.protocol.settings, "siblings": 2 * study.protocol.siblings})
     assert counts["paper"]["queries"] == study.protocol.settings * study.protocol.queries
-    for name, r in report.split_protocols(rankings).items():
-        assert report.recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(rec["metrics"][name])
+    for name, r in results.split_protocols(rankings).items():
+        assert results.recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(rec["metrics"][name])
     assert np.load(tmp_path / "cell" / "embeddings.npy").shape[0] == len(sel.test)

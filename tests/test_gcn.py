@@ -52,7 +52,7 @@ def test_training_lowers_the_loss_and_is_deterministic():
     torch.testing.assert_close(embed(r1.model, graphs), embed(r2.model, graphs))
 
 
-@pytest.mark.parametrize("choice", [
+CHOICES = [
     {"edges": "upper", "linear": False},
     {"label": "embedding", "colour": "standardised"},
     {"label": "onehot"},
@@ -61,19 +61,134 @@ def test_training_lowers_the_loss_and_is_deterministic():
     {"conv": "gatv2"},
     {"pooling": "meanmax"},
     {"mining": "batch_hard"},
-])
+]
+
+
+def graphs_at(threshold, spec):
+    """The toy graphs at a threshold, with edges as `spec.edges` says (as a cell builds them)."""
+    return [at_threshold(complete_graph(g.x, g.pos, g.setting, g.frame), threshold, spec.edges == "both")
+            for g in toy_graphs()]
+
+
+_DEFAULT = {}
+
+
+def trained_default(threshold):
+    """The paper's encoder trained like the variants below (same seed, data and epochs), once per threshold."""
+    if threshold not in _DEFAULT:
+        spec = GCNSpec(epochs=2, batch_size=8, patience=5)
+        graphs = graphs_at(threshold, spec)
+        _DEFAULT[threshold] = embed(train(graphs[:18], graphs[18:], spec, seed=0, threads=1).model, graphs)
+    return _DEFAULT[threshold]
+
+
+@pytest.mark.parametrize("choice", CHOICES)
 @pytest.mark.parametrize("threshold", [1.5, 0.0])
 def test_every_encoder_variant_trains_and_embeds(choice, threshold):
-    """... at a threshold, and at 0 (no edges: the encoder sees the nodes only)."""
+    """... at a threshold, and at 0 (no edges: the encoder sees the nodes only); and each variant's embeddings differ
+    from the paper encoder's trained with the same seed on the same graphs, except the edge weight's at threshold 0
+    (an option that acts through the edges alone changes nothing without edges)."""
     import dataclasses
 
     spec = dataclasses.replace(GCNSpec(epochs=2, batch_size=8, patience=5), **choice)
-    graphs = toy_graphs()
-    graphs = [at_threshold(complete_graph(g.x, g.pos, g.setting, g.frame), threshold, spec.edges == "both")
-              for g in graphs]
+    graphs = graphs_at(threshold, spec)
     assert (threshold == 0) == all(g.edge_index.shape[1] == 0 for g in graphs)
     empty = at_threshold(complete_graph(np.zeros((0, 4)), np.zeros((0, 3)), "ai_900_009", "e"), threshold)
     result = train(graphs[:18], graphs[18:], spec, seed=0, threads=1)
+    assert result.model.spec == spec
     z = embed(result.model, graphs + [empty])
     assert z.shape == (len(graphs) + 1, result.model.out_channels) and torch.isfinite(z).all()
     assert all(np.isfinite(h["train_loss"]) for h in result.history)
+    default = trained_default(threshold)
+    if choice == {"edge_weight": "inverse"} and threshold == 0:
+        torch.testing.assert_close(z[:-1], default)
+    else:
+        assert z[:-1].shape != default.shape or not torch.allclose(z[:-1], default)
+
+
+def twin_encoders(**choice):
+    """The paper's encoder and the variant `choice`, built from the same random state (same weights where their
+    parameters have the same names and shapes)."""
+    import dataclasses
+
+    torch.manual_seed(0)
+    base = GraphEncoder(GCNSpec())
+    torch.manual_seed(0)
+    return base, GraphEncoder(dataclasses.replace(GCNSpec(), **choice))
+
+
+def shapes(model):
+    return {k: tuple(v.shape) for k, v in model.state_dict().items()}
+
+
+def with_lengths_times(graphs, factor):
+    return [g.clone().update({"edge_attr": g.edge_attr * factor}) for g in graphs]
+
+
+def test_label_and_colour_options_change_the_node_features():
+    graphs = graphs_at(math.inf, GCNSpec())
+    base, emb_ = twin_encoders(label="embedding")
+    assert shapes(base)["convs.0.lin.weight"] == (128, 4)                       # raw id + R, G, B
+    assert shapes(emb_)["label_embedding.weight"] == (41, 16) and shapes(emb_)["convs.0.lin.weight"] == (128, 19)
+    assert "label_embedding.weight" not in shapes(base)
+    _, onehot = twin_encoders(label="onehot")
+    assert shapes(onehot)["convs.0.lin.weight"] == (128, 44)                    # 41 one-hot + R, G, B
+    x = torch.cat([g.x for g in graphs])
+    f = onehot.features(x)
+    assert (f[:, :41].sum(1) == 1).all() and (f[:, :41].argmax(1) == x[:, 0].long()).all()
+    torch.testing.assert_close(base.features(x), x)                            # the paper: the numbers as they are
+    _, std = twin_encoders(colour="standardised")
+    std.set_colour_stats(graphs)
+    colour = std.features(x)[:, 1:]
+    torch.testing.assert_close(colour.mean(0), torch.zeros(3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(colour.std(0), torch.ones(3), atol=1e-5, rtol=0)
+    base.set_colour_stats(graphs)
+    torch.testing.assert_close(base.features(x), x)                            # raw colour: the stats are unused
+
+
+def test_structure_options_change_the_layers_and_the_output():
+    graphs = graphs_at(1.5, GCNSpec())  # not complete graphs: on those every node ends the same, and mean = max
+    base, nolin = twin_encoders(linear=False)
+    assert shapes(base)["lin.weight"] == (64, 128) and shapes(base)["convs.4.lin.weight"] == (128, 128)
+    assert not any(k.startswith("lin.") for k in shapes(nolin)) and shapes(nolin)["convs.4.lin.weight"] == (64, 128)
+    base, meanmax = twin_encoders(pooling="meanmax")
+    assert shapes(base) == shapes(meanmax) and meanmax.out_channels == 128
+    z, zm = embed(base, graphs), embed(meanmax, graphs)
+    assert zm.shape == (len(graphs), 128)
+    torch.testing.assert_close(zm[:, 64:], z)                                   # max pooling, as the paper's
+    assert not torch.allclose(zm[:, :64], z)                                    # and the mean beside it
+    for conv, cls in (("gine", "GINEConv"), ("gatv2", "GATv2Conv")):
+        _, m = twin_encoders(conv=conv)
+        assert [type(c).__name__ for c in m.convs] == [cls] * 5
+
+
+def test_edge_options_change_what_the_encoder_reads_of_the_edges():
+    spec_upper = GCNSpec(edges="upper")
+    both, upper = graphs_at(1.5, GCNSpec()), graphs_at(1.5, spec_upper)
+    assert sum(g.edge_index.shape[1] for g in upper) > 0
+    assert [2 * g.edge_index.shape[1] for g in upper] == [g.edge_index.shape[1] for g in both]
+    assert all((g.edge_index[0] < g.edge_index[1]).all() for g in upper)       # i < j only, as the published code
+    base, _ = twin_encoders()
+    assert not torch.allclose(embed(base, upper), embed(base, both))          # the encoder sees one direction less
+    # the paper's GCNConv ignores the lengths; the edge weight, GINE and GATv2 read them
+    longer = with_lengths_times(both, 3.0)
+    torch.testing.assert_close(embed(base, longer), embed(base, both))
+    for choice in ({"edge_weight": "inverse"}, {"conv": "gine"}, {"conv": "gatv2"}):
+        _, m = twin_encoders(**choice)
+        assert not torch.allclose(embed(m, longer), embed(m, both)), choice
+    # the edge weight is the paper's encoder (same weights) with weighted edges: different with edges, same without
+    base, weighted = twin_encoders(edge_weight="inverse")
+    assert not torch.allclose(embed(weighted, both), embed(base, both))
+    none = graphs_at(0.0, GCNSpec())
+    torch.testing.assert_close(embed(weighted, none), embed(base, none))
+
+
+def test_batch_hard_mining_trains_differently():
+    import dataclasses
+
+    graphs = toy_graphs()
+    spec = GCNSpec(epochs=3, batch_size=8, patience=10)
+    random = train(graphs[:18], graphs[18:], spec, seed=0, threads=1)
+    hard = train(graphs[:18], graphs[18:], dataclasses.replace(spec, mining="batch_hard"), seed=0, threads=1)
+    assert [h["train_loss"] for h in hard.history] != pytest.approx([h["train_loss"] for h in random.history])
+    assert not torch.allclose(embed(hard.model, graphs), embed(random.model, graphs))

@@ -8,10 +8,58 @@ from monolib import paths
 from monolib.params import StudyError, load_study
 
 
+def _merged(base: dict, over: dict) -> dict:
+    """What `extends:` means, written out again here: mappings merged key by key, anything else replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merged(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+    return out
+
+
+def _assert_loaded(loaded, raw, where: str) -> None:
+    """Every value the YAML gives is the loaded study's value at the same key (dataclass fields, mapping keys and
+    list items alike), numbers compared as numbers (thresholds read as floats, `.inf` as infinity)."""
+    if isinstance(raw, dict):
+        for k, v in raw.items():
+            if isinstance(loaded, dict):
+                assert k in loaded, f"{where}.{k}: missing from the loaded study"
+                _assert_loaded(loaded[k], v, f"{where}.{k}")
+            else:
+                assert hasattr(loaded, k), f"{where}.{k}: missing from the loaded study"
+                _assert_loaded(getattr(loaded, k), v, f"{where}.{k}")
+    elif isinstance(raw, list):
+        assert isinstance(loaded, list) and len(loaded) == len(raw), f"{where}: {loaded!r} != {raw!r}"
+        for i, (a, b) in enumerate(zip(loaded, raw)):
+            _assert_loaded(a, b, f"{where}[{i}]")
+    elif isinstance(raw, (int, float)) and not isinstance(raw, bool):
+        assert not isinstance(loaded, bool) and float(loaded) == float(raw), f"{where}: {loaded!r} != {raw!r}"
+    else:
+        assert loaded == raw and type(loaded) is type(raw), f"{where}: {loaded!r} != {raw!r}"
+
+
 @pytest.mark.parametrize("name", sorted(p.stem for p in paths.PARAMS.glob("*.yaml")))
 def test_committed_studies_load(name):
+    """Each params/<name>.yaml loads, names itself <name> (so `monolib study <name>` and its runs/ folder agree),
+    holds every value its file (and the file it extends) writes, and is a grid the runner can run."""
+    file = paths.PARAMS / f"{name}.yaml"
+    raw = yaml.safe_load(file.read_text())
     s = load_study(name, check_files=name in ("smoke", "quick"))
-    assert s.name == name or s.path.endswith(f"{name}.yaml")
+    assert s.name == raw["name"] == name
+    assert s.path == str(file.resolve())
+    if raw.get("extends"):
+        base = yaml.safe_load((paths.PARAMS / f"{raw['extends']}.yaml").read_text())
+        assert s.extends == raw["extends"] and not base.get("extends")
+        assert s.data_dir == paths.study_dir(raw["extends"])    # the base's dataset, models and graphs are reused
+        raw = _merged(base, raw)
+        raw["name"] = name
+    _assert_loaded(s, raw, name)
+    # a grid the runner can read: every scenario of known models, every method known (a study may have no method:
+    # params/zoo.yaml only pretrains perception networks)
+    assert s.scenarios and s.thresholds and s.seeds
+    models = set(s.model_names()) | {"gt"}
+    assert all({sc.depth, sc.semantic} <= models for sc in s.scenarios.values())
+    assert all(s.method_kind(m) in ("graph", "image") for m in s.methods + list(s.variants))
+    assert s.protocol.queries + s.protocol.positives == s.protocol.frames
 
 
 def test_quick_is_the_papers_protocol():

@@ -215,18 +215,77 @@ def test_run_caches_and_round_trips(tiny_study):
     assert keys == [perception.model_key(tiny_study, n) for n in tiny_study.model_names()]
 
 
+def _png_is_a_picture(path: Path, min_size: tuple[int, int]) -> np.ndarray:
+    """The PNG as an (H, W, 3) array, after checking it is at least `min_size` (w, h) and not blank."""
+    from PIL import Image
+
+    with Image.open(path) as im:
+        assert im.format == "PNG" and im.size[0] >= min_size[0] and im.size[1] >= min_size[1], (path, im.size)
+        rgb = np.asarray(im.convert("RGB"))
+    colours = len(np.unique(rgb.reshape(-1, 3), axis=0))
+    assert colours > 50 and (rgb < 250).any(axis=2).mean() > 0.05, (path, colours)  # drawn on, not a white page
+    return rgb
+
+
 def test_figures(tiny_study):
+    """Each figure is a real picture (a PNG of a sensible size, not blank), and draws the study's data: the training
+    curves of every trained model, and Figures 3 and 4 the test frames, their ground truth and the predictions."""
     import matplotlib
 
     matplotlib.use("agg")
-    from monolib import perception
+    import matplotlib.pyplot as plt
+
+    from monolib import depth, perception
+    from monolib.labels import colourize
 
     perception.run(tiny_study, progress=False)
-    for fn, name in [(perception.plot_training, "perception_training.png"),
-                     (perception.plot_depth_examples, "fig3_depth.png"),
-                     (perception.plot_semantic_examples, "fig4_semantics.png")]:
-        fn(tiny_study)
-        assert (paths.figures_dir("smoke") / name).stat().st_size > 1000
+    fig_dir = paths.figures_dir("smoke")
+    depth_models = [d.name for d in tiny_study.perception.depth]
+    frames = perception._test_frames(tiny_study, 3)
+    assert len(frames) == 3
+
+    fig = perception.plot_training(tiny_study)
+    _png_is_a_picture(fig_dir / "perception_training.png", (500, 200))
+    loss, metric = fig.axes
+    assert (loss.get_title(), metric.get_title()) == ("training loss", "validation metric")
+    assert [line.get_label() for line in loss.lines] == tiny_study.model_names()
+    for line, name in zip(loss.lines, tiny_study.model_names()):
+        h = io.read_json(perception.model_dir(tiny_study, name) / "history.json")["epochs"]
+        assert list(line.get_xdata()) == [r["epoch"] for r in h]
+        assert list(line.get_ydata()) == pytest.approx([r["train_loss"] for r in h])
+    assert [line.get_label() for line in metric.lines] == [f"{tiny_study.perception.segmentation.name} (mIoU)"] + \
+        [f"{n} (delta<1.25)" for n in depth_models]
+    plt.close(fig)
+
+    fig = perception.plot_depth_examples(tiny_study)
+    _png_is_a_picture(fig_dir / "fig3_depth.png", (500, 200))
+    ncol = 1 + 2 * (1 + len(depth_models))                    # RGB, then GT + each model in metres and 0..1
+    assert len(fig.axes) == 3 * ncol
+    assert [a.get_title() for a in fig.axes[:ncol]] == ["RGB"] + [f"{m} (m)" for m in ["ground truth"] + depth_models] \
+        + [f"{m} (0..1)" for m in ["ground truth"] + depth_models]
+    d_name = depth_models[0]
+    model = depth.load_model(tiny_study.perception.depth[0], perception.model_dir(tiny_study, d_name) / "model.pt")
+    for r, f in enumerate(frames):
+        row = fig.axes[r * ncol : (r + 1) * ncol]
+        np.testing.assert_array_equal(row[0].images[0].get_array(), f.rgb)
+        np.testing.assert_array_equal(np.ma.filled(row[1].images[0].get_array(), np.nan), f.depth.astype(np.float32))
+        np.testing.assert_allclose(np.asarray(row[2].images[0].get_array()), depth.predict(model, f.rgb[None])[0],
+                                   rtol=1e-4)
+        assert f.setting in row[0].get_ylabel()
+    plt.close(fig)
+
+    fig = perception.plot_semantic_examples(tiny_study)
+    _png_is_a_picture(fig_dir / "fig4_semantics.png", (400, 300))
+    assert len(fig.axes) == 3 * 3
+    assert [a.get_title() for a in fig.axes[:3]] == ["RGB", "ground truth",
+                                                      f"DeepLabV3 ({tiny_study.perception.segmentation.name})"]
+    pred = perception.semantic_source(tiny_study, tiny_study.perception.segmentation.name)
+    for r, f in enumerate(frames):
+        rgb, gt, pr = (a.images[0].get_array() for a in fig.axes[3 * r : 3 * r + 3])
+        np.testing.assert_array_equal(rgb, f.rgb)
+        np.testing.assert_array_equal(gt, colourize(f.semantic))
+        np.testing.assert_array_equal(pr, colourize(pred(f)))
+    plt.close(fig)
 
 
 def test_pretrained_offline_error(tiny_study, monkeypatch, tmp_path):

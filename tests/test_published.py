@@ -1,5 +1,6 @@
 """Published graph files (the original Monograph release format), written here in that format."""
 import math
+import re
 
 import numpy as np
 import pytest
@@ -8,6 +9,7 @@ import yaml
 from torch_geometric.data import Data
 
 from monolib import published
+from monolib.published import PublishedGraphError
 from monolib.params import load_study
 from monolib.graph import at_threshold
 
@@ -47,10 +49,118 @@ def test_read_file_filters_lengths_and_makes_edges_undirected(tmp_path):
 def test_bad_files_name_the_file(tmp_path):
     bad = tmp_path / "ai_001_001_00_graphs.pt"
     bad.write_bytes(b"not torch")
-    with pytest.raises(ValueError, match="ai_001_001_00_graphs.pt"):
+    with pytest.raises(PublishedGraphError, match="ai_001_001_00_graphs.pt: not a readable torch file"):
         published.read_file(bad)
-    with pytest.raises(ValueError, match="ai_VVV_NNN_XX_graphs.pt"):
+    with pytest.raises(PublishedGraphError, match="ai_VVV_NNN_XX_graphs.pt"):
         published.read_file(tmp_path / "graphs.pt")
+
+
+def _without(attr):
+    def change(g):
+        del g[attr]
+    return change
+
+
+def _edges(pairs, lengths=None):
+    def change(g):
+        g.edge_index = torch.tensor(pairs, dtype=torch.long).t().reshape(2, -1)
+        n = len(pairs) if lengths is None else lengths
+        g.edge_attribute = torch.ones((1, n))
+    return change
+
+
+# (what the file holds instead of the release's format, the error's words after "<file>: ")
+BAD_FILES = {
+    "not a list": ("dict", "expected a list of torch_geometric Data, got dict"),
+    "no edge_attribute": (_without("edge_attribute"), "graph 1: no 'edge_attribute' (expected x, edge_index"),
+    "no y": (_without("y"), "graph 1: no 'y'"),
+    "edges and lengths differ": (_edges([(0, 1), (0, 2), (1, 2)], lengths=2),
+                                 "graph 1: 3 edges and 2 lengths; expected one length per edge"),
+    "i > j": (_edges([(0, 1), (2, 1)]), "graph 1: pair (2, 1) at edge 1 has i > j; expected pairs i < j only"),
+    "self-loop": (_edges([(0, 1), (2, 2)]), "graph 1: self-loop (2, 2) at edge 1; expected pairs of two different"),
+    "both directions": (_edges([(0, 1), (1, 2), (1, 0)]),
+                        "graph 1: pair (0, 1) is listed in both directions; expected each pair once, as i < j"),
+    "listed twice": (_edges([(0, 1), (0, 1)]), "graph 1: pair (0, 1) is listed 2 times; expected each pair once"),
+    "node out of range": (_edges([(0, 1), (1, 7)]), "graph 1: edge_index refers to node 7; expected node indices 0..2"),
+    "y of another file": (lambda g: setattr(g, "y", ["009009", "00", "0001"]),
+                          "graph 1: y is ['009009', '00', '0001']; expected ['001001', '00', frame digits]"),
+}
+
+
+def write_bad_file(folder, case):
+    """ai_001_001_00_graphs.pt in the release's format, but graph 1 (of 3 nodes) broken as `case` says."""
+    change, _ = BAD_FILES[case]
+    rng = np.random.default_rng(3)
+    graphs = [published_graph("001001", "00", f, 3, rng) for f in range(3)]
+    if change == "dict":
+        obj = {"graphs": graphs}
+    else:
+        change(graphs[1])
+        obj = graphs
+    folder.mkdir(parents=True, exist_ok=True)
+    torch.save(obj, folder / "ai_001_001_00_graphs.pt")
+    return folder / "ai_001_001_00_graphs.pt"
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES))
+def test_each_bad_published_file_is_one_error_naming_it(tmp_path, case):
+    path = write_bad_file(tmp_path, case)
+    with pytest.raises(PublishedGraphError, match=f"^{re.escape(f'{path}: {BAD_FILES[case][1]}')}"):
+        published.read_file(path)
+    # a good file of the same kind reads: the error is the broken graph's, not the reader's habit
+    good = tmp_path / "good" / "ai_001_001_00_graphs.pt"
+    good.parent.mkdir()
+    graphs = [published_graph("001001", "00", f, 3, np.random.default_rng(3)) for f in range(3)]
+    torch.save(graphs, good)
+    read = published.read_file(good)
+    assert [g.pair_index.tolist() for g in read] == [g.edge_index.tolist() for g in graphs]
+
+
+def test_empty_or_missing_folder_is_one_error(tmp_path):
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("no graphs here")
+    with pytest.raises(PublishedGraphError, match=f"^{re.escape(str(tmp_path / 'empty'))}: no published graph files"):
+        published.read_folder(tmp_path / "empty")
+    with pytest.raises(PublishedGraphError, match=f"^{re.escape(str(tmp_path / 'nope'))}: folder not found"):
+        published.read_folder(tmp_path / "nope")
+
+
+def published_study(tmp_path, graphs_root, **protocol):
+    from monolib import paths
+
+    study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
+    study.update(name="published_test", graphs_root=str(graphs_root), seeds=[0], thresholds=[1])
+    study.pop("variants", None)  # one cell in all: a reader that let a bad file through fails the test in seconds
+    study["protocol"].update(settings=3, frames=5, queries=3, positives=2, **protocol)
+    study["gcn"].update(epochs=1, val_settings=1)
+    p = tmp_path / "study.yaml"
+    p.write_text(yaml.safe_dump(study))
+    return p
+
+
+@pytest.mark.parametrize("case", sorted(BAD_FILES) + ["empty train folder"])
+def test_the_command_says_error_and_exits_2_on_bad_published_graphs(tmp_path, monkeypatch, capsys, case):
+    """`monolib study` on a published-graphs study with one bad file: exit status 2 and one `error:` line naming
+    the file and what was expected, no traceback, before any cell runs."""
+    from monolib import cli, paths
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
+    root = tmp_path / "graphs"
+    write_folder(root / "test", [f"01{i}001" for i in range(1, 4)], 5, np.random.default_rng(1))
+    if case == "empty train folder":
+        (root / "train").mkdir()
+        where, message = root / "train", "no published graph files; expected ai_VVV_NNN_XX_graphs.pt files"
+    else:
+        write_folder(root / "train", [f"00{i}001" for i in range(2, 4)], 6, np.random.default_rng(2))
+        where, message = write_bad_file(root / "train", case), BAD_FILES[case][1]
+    code = cli.main(["study", str(published_study(tmp_path, root))])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert lines[0].startswith(f"error: {where}: {message}"), lines[0]
+    assert not (tmp_path / "runs" / "published_test" / "cells").exists()
 
 
 def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
@@ -83,9 +193,13 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
     with pytest.raises(StudyError, match="threshold -1.0: expected 0 \\(no edges\\)"):
         cell.run_cell(s, "gcn", "s1", -1.0, 0, out_dir=str(tmp_path / "negative"))
     # the study file's encoder variants run on published graphs too (label embedding, GINE on lengths, batch-hard)
+    edges = {}
     for method in ("ours", "gine", "batch_hard", "gcn_published"):
         r = cell.run_cell(s, method, "s1", 1.0, 0, out_dir=str(tmp_path / method))
         assert r["method"] == method and 0 <= r["metrics"]["paper"]["recall@1"] <= 100
+        edges[method] = r["test_edges_mean"]
+    # gcn_published (edges: upper) encodes each pair once, i < j; the others both directions
+    assert edges["ours"] == edges["gine"] == edges["batch_hard"] == 2 * edges["gcn_published"] > 0
 
 
 SAMPLE = published.Path(__file__).resolve().parents[2] / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"

@@ -4,7 +4,7 @@ import pytest
 
 from monolib.params import Protocol
 from monolib.retrieval import (ProtocolDataError, draw_protocol, evaluate, evaluate_protocols, family,
-                               metrics_from_hits, protocol_seed, protocol_settings, rank)
+                               metrics_from_hits, protocol_seed, protocol_settings)
 
 
 def test_metrics_from_known_hits():
@@ -34,19 +34,47 @@ def test_protocol_never_retrieves_own_queries_and_draw_is_seeded():
 
 
 def test_known_ranking_gives_known_recall():
-    pr = Protocol(settings=2, frames=3, queries=2, positives=1, recall_k=[1, 2], precision_k=[2])
-    settings = np.array(["a", "a", "a", "b", "b", "b"])
-    frames = [f"f{i}" for i in range(6)]
-    draw = draw_protocol(frames, settings, pr, 0)
-    emb = np.zeros((6, 1), np.float32)
-    emb[:, 0] = [0, 10, 20, 30, 40, 50]
-    # put setting a's positive far away: its queries then find setting b first
-    pos_a = np.flatnonzero((settings == "a") & ~draw.is_query)[0]
-    emb[pos_a] = 1000
-    q, idx, dist = rank(emb, draw, k=4)
-    hits = settings[idx] == settings[q][:, None]
-    assert not hits[settings[q] == "a", 0].any()
-    assert (np.diff(dist, axis=1) >= 0).all()
+    """Two settings A, B of 4 frames (2 queries, 2 positives) on a line, placed so that every ranking is known:
+
+        position  0    1    9    12   20   30   40   41.5
+        frame     qa1  pa1  qb1  pb1  qa2  pa2  qb2  pb2     (q: query, p: positive; a/b: setting A/B)
+
+    A query's candidates are its own positives and every frame of the other setting (never its own setting's
+    queries: qa1 does not see qa2 at distance 20), so the rankings and their hits (own setting = 1) are
+        qa1: pa1 1, qb1 9, pb1 12, pa2 30, qb2 40, pb2 41.5        -> 1 0 0 1 0 0
+        qa2: pb1 8, pa2 10, qb1 11, pa1 19, qb2 20, pb2 21.5       -> 0 1 0 1 0 0
+        qb1: pb1 3, pa1 8, qa1 9, qa2 11, pa2 21, pb2 32.5         -> 1 0 0 0 0 1
+        qb2: pb2 1.5, pa2 10, qa2 20, pb1 28, pa1 39, qa1 40       -> 1 0 0 1 0 0
+    recall@1 = 3/4, recall@2 = 4/4, precision@2 = (1/2 + 1/2 + 1/2 + 1/2) / 4, precision@4 = (2 + 2 + 1 + 2) / 16."""
+    pr = Protocol(settings=2, frames=4, queries=2, positives=2, recall_k=[1, 2], precision_k=[2, 4])
+    settings = np.array(["ai_001_001"] * 4 + ["ai_002_001"] * 4)
+    frames = [f"{s}/cam_00/{i:04d}" for i, s in enumerate(settings)]
+    seed = 5
+    draw = draw_protocol(frames, settings, pr, seed)  # the roles `evaluate` will draw with the same seed
+    place = {"ai_001_001": ([0.0, 20.0], [1.0, 30.0]), "ai_002_001": ([9.0, 40.0], [12.0, 41.5])}
+    emb = np.zeros((8, 1), np.float32)
+    name = {}
+    for s, (queries, positives) in place.items():
+        idx = np.flatnonzero(settings == s)
+        for i, x, n in zip(idx[draw.is_query[idx]], queries, ("q1", "q2")):
+            emb[i], name[frames[i]] = x, s[3:6] + n
+        for i, x, n in zip(idx[~draw.is_query[idx]], positives, ("p1", "p2")):
+            emb[i], name[frames[i]] = x, s[3:6] + n
+    metrics, rankings, again = evaluate(emb, frames, settings, pr, seed)
+    assert (again.is_query == draw.is_query).all()
+    assert metrics == pytest.approx({"recall@1": 75.0, "recall@2": 100.0, "precision@2": 50.0,
+                                     "precision@4": 100 * 7 / 16})
+    got = {name[q]: [(name[m], d) for m, d in zip(r.match, r.distance)] for q, r in rankings.groupby("query")}
+    assert got == {
+        "001q1": [("001p1", 1), ("002q1", 9), ("002p1", 12), ("001p2", 30), ("002q2", 40), ("002p2", 41.5)],
+        "001q2": [("002p1", 8), ("001p2", 10), ("002q1", 11), ("001p1", 19), ("002q2", 20), ("002p2", 21.5)],
+        "002q1": [("002p1", 3), ("001p1", 8), ("001q1", 9), ("001q2", 11), ("001p2", 21), ("002p2", 32.5)],
+        "002q2": [("002p2", 1.5), ("001p2", 10), ("001q2", 20), ("002p1", 28), ("001p1", 39), ("001q1", 40)],
+    }
+    assert (rankings.groupby("query")["rank"].apply(list) == [[1, 2, 3, 4, 5, 6]] * 4).all()
+    # the same hits through the metric function alone
+    hits = np.array([[1, 0, 0, 1, 0, 0], [0, 1, 0, 1, 0, 0], [1, 0, 0, 0, 0, 1], [1, 0, 0, 1, 0, 0]], bool)
+    assert metrics_from_hits(hits, [1, 2], [2, 4]) == pytest.approx(metrics)
 
 
 def test_protocol_checks_frame_counts():

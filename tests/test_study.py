@@ -14,8 +14,9 @@ import papermill
 import pytest
 import yaml
 
-from monolib import paths, report
+from monolib import paths
 from monolib.params import load_study
+from monolib.results import check_protocols, recompute_metrics, split_protocols
 
 pytestmark = pytest.mark.slow
 MONOLIB = [sys.executable, "-m", "monolib.cli"]
@@ -67,13 +68,13 @@ def test_every_number_is_recomputed_from_its_rankings(smoke_study):
         cell = json.loads(f.read_text())
         rankings = pd.read_csv(f.parent / "rankings.csv")
         protocol = pd.read_csv(f.parent / "protocol.csv")
-        report.check_protocols(rankings, protocol, positives=s.protocol.positives, settings=shapes)
+        check_protocols(rankings, protocol, positives=s.protocol.positives, settings=shapes)
         paper = sorted(protocol[protocol.protocol == "paper"].setting.unique())
         assert len({family(x) for x in paper}) == len(paper) == s.protocol.settings
         assert cell["protocols"]["paper"]["settings"] == paper
         thr = float(cell["threshold"])  # "inf" reads as inf
-        for name, r in report.split_protocols(rankings).items():
-            again = report.recompute_metrics(r, s.protocol.recall_k, s.protocol.precision_k)
+        for name, r in split_protocols(rankings).items():
+            again = recompute_metrics(r, s.protocol.recall_k, s.protocol.precision_k)
             assert again == pytest.approx(cell["metrics"][name], abs=1e-9)
             rows = results[(results.method == cell["method"]) & (results.scenario == cell["scenario"])
                            & (results.threshold == thr) & (results.seed == cell["seed"]) & (results.protocol == name)]
@@ -170,8 +171,8 @@ def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path, 
     s = load_study("smoke")
     n_settings = s.protocol.settings + 2 * s.protocol.siblings
     assert rankings["rank"].max() == 10 and len(rankings) == 10 * n_settings * s.protocol.queries
-    for name, r in report.split_protocols(rankings).items():
-        assert report.recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(cell["metrics"][name])
+    for name, r in split_protocols(rankings).items():
+        assert recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(cell["metrics"][name])
     # same study, scenario, threshold and seed: the same numbers (determinism)
     from monolib.cell import run_cell
 

@@ -1,0 +1,66 @@
+"""The version of the code behind each cached stage: part of every cache key, so a changed stage recomputes.
+
+A stage's version is a hash of the source of the modules that compute its output (`STAGE_MODULES`), taken from
+their syntax tree without docstrings: an edit to a comment, a docstring or the layout keeps the caches, any change
+to the code (a constant of the graph builder, a layer of a network) gives new keys, and the stage and everything
+after it run again on an existing ``runs/``. Each stage's key also holds the keys of its inputs (the dataset's in the
+perception models', the models' in the graphs', the graphs' in the cells'), so a change propagates downstream.
+
+A hash is conservative (a refactor that keeps every number still recomputes) but cannot be forgotten the way a
+hand-bumped constant can. `monolib.synth.FORMAT_VERSION` stays as the rendered files' own format mark.
+"""
+from __future__ import annotations
+
+import ast
+import functools
+import hashlib
+
+from monolib import paths
+
+# The modules whose code decides each stage's output (the stage's own module and the ones it computes with).
+STAGE_MODULES = {
+    "dataset": ["synth", "hypersim", "labels"],
+    "perception": ["perception", "segmentation", "depth", "zoo", "dataset", "retrieval", "hypersim", "labels"],
+    "graphs": ["scenegraphs", "graph", "dataset", "retrieval", "hypersim", "published", "methods", "labels"],
+    "cells": ["cell", "gcn", "baselines", "retrieval", "methods", "graph", "dataset", "hypersim", "labels"],
+}
+# What a stage's modules may import beyond their own list (`tests/test_cache.py` holds every import to this):
+# upstream stages, whose keys are part of this stage's key; infrastructure that computes no number; and the
+# orchestration and presentation a module calls in functions that write no cached output (graph sizes, labels of
+# tables). A new import outside these makes that test fail: add the module to the stage's list or here, with reason.
+UPSTREAM = {"dataset": [], "perception": ["dataset"], "graphs": ["dataset", "perception"],
+            "cells": ["dataset", "perception", "graphs"]}
+INFRASTRUCTURE = ["io", "paths", "params", "device", "versions", "progress"]
+PRESENTATION = ["report", "results", "statistics", "tables", "plots", "figures", "study", "viz", "fidelity", "readme"]
+
+
+def _strip_docstrings(tree: ast.AST) -> ast.AST:
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            body = node.body
+            if body and isinstance(body[0], ast.Expr) and isinstance(getattr(body[0], "value", None), ast.Constant) \
+                    and isinstance(body[0].value.value, str):
+                node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+def source_version(source: str, filename: str = "<source>") -> str:
+    """Hash of Python source without its comments, docstrings or layout."""
+    tree = _strip_docstrings(ast.parse(source, filename=filename))
+    return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()[:12]
+
+
+@functools.lru_cache(maxsize=None)
+def module_version(module: str) -> str:
+    """`source_version` of one module (``monolib/<module>.py``)."""
+    path = paths.PACKAGE / f"{module}.py"
+    return source_version(path.read_text(), str(path))
+
+
+@functools.lru_cache(maxsize=None)
+def code_version(stage: str) -> str:
+    """The version of `stage` (a key of `STAGE_MODULES`): one hash over its modules' versions."""
+    if stage not in STAGE_MODULES:
+        raise KeyError(f"stage {stage!r}: unknown (known: {', '.join(STAGE_MODULES)})")
+    text = ",".join(f"{m}:{module_version(m)}" for m in STAGE_MODULES[stage])
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
