@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long smoke test bench clean-runs
+.PHONY: install study ablations perception-long smoke zoo test bench clean-runs
 
 install: $(STAMP)
 
@@ -40,7 +40,15 @@ perception-long: install
 smoke: install
 	$(VENV)/bin/monolib study smoke
 
-# tests/ first (they run the smoke study end to end), then every notebook with its smoke defaults (nbval, lax)
+# the model zoo: pretrain the perception networks on their own mini-Hypersim (params/zoo.yaml), measure them on
+# quick's test split, write monolib/data/zoo/<name>.pt + .json (a GPU job: see the README)
+zoo: install
+	$(VENV)/bin/monolib zoo zoo --eval quick
+
+# tests/ first (they run the smoke study end to end), then every notebook with its smoke defaults (nbval, lax):
+# every cell must run, and each cell marked # NBVAL_CHECK_OUTPUT must print what the committed notebook holds (its
+# outputs survive the git filter through nbstripout's keep_output metadata, see notebooks/conftest.py). When a change
+# moves those numbers on purpose: python tests/refresh_notebook_outputs.py, then review the diff.
 test: install
 	$(PY) -m pytest tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
 

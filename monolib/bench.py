@@ -4,7 +4,9 @@
 - per-frame stages of the localizer at the study's resolution: segmentation, depth, back-projection + graph,
   encoder, and kNN over the 656 test frames; the networks are built from the study's specs (trained weights
   change nothing about speed);
-- graph construction alone at 256x192 and 1024x768;
+- graph construction alone at 256x192 and 1024x768, and against the original code's way (a Python double loop over
+  the pixels, `original_graph`) on the same frames in the same run: the speedup ratio;
+- `make zoo`'s training time on this machine, projected from timed training steps of params/zoo.yaml's networks;
 - kNN over 600, 100k and 1M 64-d vectors: torch (cdist + topk) against a faiss flat index.
 """
 from __future__ import annotations
@@ -32,13 +34,63 @@ def graph_ms(width: int, height: int, repeat: int = 10, seed: int = 0) -> float:
     """Milliseconds to back-project a frame and build its nodes + edges (30 labels, blocky layout)."""
     from monolib.graph import at_threshold, complete_graph
 
+    rgb, depth, semantic, cam = _bench_frame(width, height, seed)
+    return 1000 * _time(lambda: at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, cam), "s", "f"), 2.0), repeat)
+
+
+def original_graph(rgb: np.ndarray, depth: np.ndarray, semantic: np.ndarray, camera: Camera, threshold: float):
+    """The graph of a frame built the way the original published code builds it: a Python double loop over the
+    pixels gathers each label's 3D points and colours, then per-label medians (numpy), then a double loop over
+    node pairs for the edges. The reference the benchmark compares ours with (same nodes, same edges).
+    Returns (x (L, 4), pos (L, 3), edges [(i, j, length)], both directions)."""
+    height, width = depth.shape
+    rays = camera.rays(height, width)
+    points: dict[int, list] = {}
+    colours: dict[int, list] = {}
+    for v in range(height):
+        for u in range(width):
+            label, d = int(semantic[v, u]), float(depth[v, u])
+            if label < 1 or not d > 0:
+                continue
+            ray = rays[v, u]
+            points.setdefault(label, []).append(ray * (d / -ray[2]))
+            colours.setdefault(label, []).append(rgb[v, u])
+    labels = sorted(points)
+    pos = np.array([np.median(np.array(points[k]), axis=0) for k in labels]).reshape(-1, 3)
+    col = np.array([np.median(np.array(colours[k], dtype=np.float64), axis=0) / 255.0 for k in labels]).reshape(-1, 3)
+    x = np.concatenate([np.array(labels, np.float64)[:, None], col], axis=1)
+    edges = []
+    for i in range(len(labels)):
+        for j in range(i + 1, len(labels)):
+            length = float(np.linalg.norm(pos[i] - pos[j]))
+            if length < threshold:
+                edges += [(i, j, length), (j, i, length)]
+    return x, pos, edges
+
+
+def _bench_frame(width: int, height: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     blocks = rng.integers(1, 31, (12, 16))
     semantic = np.kron(blocks, np.ones((height // 12 + 1, width // 16 + 1), np.int64))[:height, :width].astype(np.int16)
     depth = rng.uniform(0.5, 8.0, (height, width)).astype(np.float32)
     rgb = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
-    cam = Camera.canonical(width, height)
-    return 1000 * _time(lambda: at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, cam), "s", "f"), 2.0), repeat)
+    return rgb, depth, semantic, Camera.canonical(width, height)
+
+
+def graph_speedup(width: int, height: int, repeat: int = 1) -> dict:
+    """Ours against `original_graph` on the same frame, in the same run: milliseconds of each, the ratio, and
+    whether the two give the same nodes and edge count."""
+    from monolib.graph import build_scene_graph
+
+    rgb, depth, semantic, cam = _bench_frame(width, height)
+    ours_ms = 1000 * _time(lambda: build_scene_graph(rgb, depth, semantic, cam, 2.0), max(3, repeat * 5))
+    original_ms = 1000 * _time(lambda: original_graph(rgb, depth, semantic, cam, 2.0), repeat)
+    g = build_scene_graph(rgb, depth, semantic, cam, 2.0)
+    x, pos, edges = original_graph(rgb, depth, semantic, cam, 2.0)
+    same = bool(np.allclose(g.x.numpy(), x, atol=1e-5) and np.allclose(g.pos.numpy(), pos, atol=1e-4)
+                and g.edge_index.shape[1] == len(edges))
+    return {"ours_ms": round(ours_ms, 2), "original_ms": round(original_ms, 1),
+            "speedup": round(original_ms / ours_ms, 1), "same_graph": same}
 
 
 def knn_ms(n: int, dim: int = 64, queries: int = 100, k: int = 10, seed: int = 0) -> dict:
@@ -86,6 +138,45 @@ def stage_ms(study_name: str = "quick", frames: int = 20) -> dict:
     return out
 
 
+def zoo_training(study_name: str = "zoo", steps: int = 3) -> dict:
+    """Seconds per training step (forward, backward, AdamW; random images at the spec's batch size and resolution)
+    of each network of the zoo study, and `make zoo`'s training time on this machine projected from it: steps per
+    epoch x epochs (validation and rendering not counted)."""
+    from monolib import depth, segmentation
+    from monolib.params import load_study
+
+    study = load_study(study_name, check_files=False)
+    ds = study.dataset
+    out = {}
+    specs = [(study.perception.segmentation, "segmentation")] + [(d, "depth") for d in study.perception.depth]
+    for spec, task in specs:
+        model = segmentation.build_model(spec) if task == "segmentation" else depth.build_model(spec)
+        opt = torch.optim.AdamW(model.parameters(), lr=spec.lr)
+        x = torch.randn(spec.batch_size, 3, spec.train_height, spec.train_width)
+        if task == "segmentation":
+            y = torch.randint(0, 40, (spec.batch_size, spec.train_height, spec.train_width))
+            loss_of = lambda: torch.nn.functional.cross_entropy(model(x)["out"], y)  # noqa: E731
+        else:
+            y = torch.rand(spec.batch_size, spec.train_height, spec.train_width) * 5 + 0.5
+            loss_of = lambda: depth.depth_loss(model(x)[:, 0], y)  # noqa: E731
+
+        def step():
+            loss = loss_of()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+
+        model.train()
+        s = _time(step, steps)
+        per_epoch = int(np.ceil((ds.train_settings - spec.val_settings) * ds.train_frames_per_setting / spec.batch_size))
+        out[spec.name] = {"s_per_step": round(s, 3), "batch_size": spec.batch_size,
+                          "resolution": f"{spec.train_width}x{spec.train_height}", "steps": per_epoch * spec.epochs,
+                          "projected_hours": round(per_epoch * spec.epochs * s / 3600, 2)}
+    out["projected_hours_all"] = round(sum(v["projected_hours"] for v in out.values()), 2)
+    out["threads"] = torch.get_num_threads()
+    return out
+
+
 def run(width: int = 256, height: int = 192, study: str = "quick", out: str | None = None) -> dict:
     """Print every benchmark; with `out`, also write them as JSON (the README quotes `figures/bench.json`)."""
     import os
@@ -108,6 +199,17 @@ def run(width: int = 256, height: int = 192, study: str = "quick", out: str | No
         ms = graph_ms(w, h)
         record["graph_ms_per_frame"][f"{w}x{h}"] = round(ms, 2)
         print(f"graph construction {w}x{h}: {ms:.1f} ms per frame")
+    z = zoo_training()
+    record["zoo_training"] = z
+    print("make zoo's training on this machine (params/zoo.yaml, projected from timed steps): " + ", ".join(
+        f"{k} {v['s_per_step']:.2f} s/step x {v['steps']} steps = {v['projected_hours']:.1f} h" for k, v in z.items()
+        if isinstance(v, dict)) + f"; all {z['projected_hours_all']:.1f} h")
+    record["graph_vs_original"] = {}
+    for w, h in ((256, 192), (1024, 768)):
+        r = graph_speedup(w, h)
+        record["graph_vs_original"][f"{w}x{h}"] = r
+        print(f"graph construction {w}x{h}, ours against the original's pixel double loop (same frame, this run): "
+              f"{r['ours_ms']:.1f} ms vs {r['original_ms']:.0f} ms, {r['speedup']:.0f}x faster, same graph: {r['same_graph']}")
     record["knn_ms_per_query"] = {}
     for n in (600, 100_000, 1_000_000):
         r = knn_ms(n)

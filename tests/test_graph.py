@@ -152,3 +152,25 @@ def test_a_frame_with_a_missing_file_becomes_an_empty_graph(tmp_path, monkeypatc
     by_frame = {g.frame: g for g in graphs["test"]}
     assert by_frame["ai_001_001/cam_00/0001"].num_nodes == 0
     assert by_frame["ai_001_001/cam_00/0000"].num_nodes == 2  # wall and floor
+
+
+def test_the_original_double_loop_builds_the_same_graph():
+    """The benchmark's reference (`monolib.bench.original_graph`, the original code's per-pixel loop) and ours agree
+    node for node and edge for edge, with invalid depth and unlabelled pixels in the frame."""
+    from monolib.bench import original_graph
+    from monolib.graph import build_scene_graph
+    from monolib.hypersim import Camera
+
+    rng = np.random.default_rng(5)
+    semantic = rng.integers(-1, 6, (24, 32)).astype(np.int16)
+    depth = rng.uniform(0.5, 6.0, (24, 32)).astype(np.float32)
+    depth[3:6, 4:9] = np.nan
+    depth[10, :] = 0.0
+    rgb = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    cam = Camera.canonical(32, 24)
+    g = build_scene_graph(rgb, depth, semantic, cam, 0.35)
+    x, pos, edges = original_graph(rgb, depth, semantic, cam, 0.35)
+    np.testing.assert_allclose(g.x.numpy(), x, atol=1e-6)
+    np.testing.assert_allclose(g.pos.numpy(), pos, atol=1e-5)
+    assert sorted(map(tuple, g.edge_index.t().tolist())) == sorted((i, j) for i, j, _ in edges)
+    assert 0 < len(edges) < len(x) * (len(x) - 1)

@@ -1,0 +1,119 @@
+"""The model zoo end to end at smoke size: pretrain, ship half-precision weights with a manifest, use them in a
+study as inference, and refuse a file that is altered or of another architecture (issue 10)."""
+import dataclasses
+import json
+
+import pytest
+import torch
+import yaml
+
+from monolib import io, paths, perception, zoo
+from monolib.params import StudyError, load_study
+
+
+@pytest.fixture(scope="module")
+def shipped(smoke_dataset, tmp_path_factory):
+    """`monolib.zoo.run` on the smoke study's data (pretraining and evaluation on the same small split: a test of
+    the machinery, not of the pretraining's value), for the segmentation net and one depth net."""
+    runs = tmp_path_factory.mktemp("zoo_runs")
+    old = paths.RUNS
+    paths.RUNS = runs
+    try:
+        s = load_study("smoke")
+        s = dataclasses.replace(s, name="zoo_test", dataset=dataclasses.replace(s.dataset, root=str(smoke_dataset)))
+        out = tmp_path_factory.mktemp("zoo")
+        manifests = zoo.run(s, s, out, progress=False, only=["deeplab", "depth_a"])
+    finally:
+        paths.RUNS = old
+    return s, out, manifests
+
+
+def study_file(tmp_path, smoke_dataset, perception_overrides: dict) -> str:
+    """The smoke study file with some perception keys changed, written to tmp_path."""
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data["name"] = "zoo_user"
+    data["dataset"]["root"] = str(smoke_dataset)
+    for where, keys in perception_overrides.items():
+        target = data["perception"]["segmentation"] if where == "segmentation" else data["perception"]["depth"][where]
+        target.update(keys)
+    path = tmp_path / "zoo_user.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def test_the_manifest_describes_the_file(shipped):
+    s, out, manifests = shipped
+    for name in ("deeplab", "depth_a"):
+        m = json.loads((out / f"{name}.json").read_text())
+        assert m == manifests[name]
+        weights = out / m["file"]
+        assert m["sha256"] == zoo.sha256(weights) and m["bytes"] == weights.stat().st_size
+        assert m["command"].startswith("monolib zoo") and m["study_file"] == "params/smoke.yaml"
+        assert m["data_key"] and m["machine"] and m["device"] and m["train_seconds"] > 0 and m["epochs"] >= 1
+        assert m["evaluated_on"]["test_frames"] > 0
+        blob = torch.load(weights, weights_only=True)
+        floats = [v for v in blob["state_dict"].values() if v.is_floating_point()]
+        assert floats and all(v.dtype == torch.float16 for v in floats)
+        assert blob["architecture"] == m["architecture"]
+    assert 0 <= manifests["deeplab"]["test_metrics"]["pixel_accuracy"] <= 1
+    assert 0 <= manifests["depth_a"]["test_metrics"]["delta1"] <= 1
+
+
+def test_a_second_run_with_the_same_data_and_spec_trains_nothing(shipped, capsys):
+    s, out, manifests = shipped
+    old = paths.RUNS
+    try:
+        again = zoo.run(s, s, out, progress=False, only=["deeplab"])
+    finally:
+        paths.RUNS = old
+    assert again["deeplab"] == manifests["deeplab"]
+    assert "up to date" in capsys.readouterr().out
+
+
+def test_a_study_with_weights_predicts_with_them(shipped, smoke_dataset, tmp_path, monkeypatch):
+    s, out, manifests = shipped
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
+    user = load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "deeplab.pt")}}))
+    table = perception.run(user, progress=False, only=["deeplab"])
+    history = io.read_json(perception.model_dir(user, "deeplab") / "history.json")
+    assert history["source"] == str(out / "deeplab.pt") and history["epochs"] == []  # loaded, not trained
+    acc = table[(table.model == "deeplab") & (table.metric == "pixel_accuracy")].value.item()
+    assert acc == pytest.approx(manifests["deeplab"]["test_metrics"]["pixel_accuracy"], abs=1e-6)
+    # the shipped file is part of the model's key: other weights, other predictions
+    assert manifests["deeplab"]["sha256"] in json.dumps(manifests) and perception.model_key(user, "deeplab") != \
+        perception.model_key(load_study("smoke", check_files=False), "deeplab")
+
+
+def test_an_altered_file_is_one_clear_error(shipped, smoke_dataset, tmp_path):
+    s, out, _ = shipped
+    bad = tmp_path / "deeplab.pt"
+    data = bytearray((out / "deeplab.pt").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    bad.write_bytes(bytes(data))
+    (tmp_path / "deeplab.json").write_text((out / "deeplab.json").read_text())
+    user = load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(bad)}}))
+    with pytest.raises(zoo.WeightsError, match="sha256.*not the one the manifest describes"):
+        zoo.load(user.perception.segmentation, "segmentation", bad)
+
+
+def test_weights_of_another_architecture_are_refused_when_the_study_loads(shipped, smoke_dataset, tmp_path):
+    s, out, _ = shipped
+    # depth_a is a ResNet18 depth net; the spec of depth_b builds a ResNet34
+    path = study_file(tmp_path, smoke_dataset, {1: {"weights": str(out / "depth_a.pt")}})
+    with pytest.raises(StudyError, match=r"perception.depth\[1\].weights.*backbone file 'resnet18' spec 'resnet34'"):
+        load_study(path)
+    path = study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "depth_a.pt")}})
+    with pytest.raises(StudyError, match="holds a depth network"):
+        load_study(path)
+
+
+def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, smoke_dataset, tmp_path):
+    s, out, _ = shipped
+    lone = tmp_path / "lone.pt"
+    lone.write_bytes((out / "deeplab.pt").read_bytes())
+    with pytest.raises(StudyError, match="no manifest lone.json"):
+        load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(lone)}}))
+    with pytest.raises(StudyError, match="not both"):
+        load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "deeplab.pt"),
+                                                                           "checkpoint": str(out / "deeplab.pt")}}))
