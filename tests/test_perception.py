@@ -200,7 +200,7 @@ def test_run_caches_and_round_trips(tiny_study):
     # a missing prediction is one clear error naming the file
     path = perception.prediction_path(tiny_study, seg_name, frames[0])
     path.unlink()
-    with pytest.raises(FileNotFoundError, match=str(path.name)):
+    with pytest.raises(perception.PredictionsMissing, match=rf"'{seg_name}'.*{path.name}.*monolib perception"):
         read(frames[0])
     io.write_h5(path, fresh[0])
     # a second run does no work: status cached, no file touched
