@@ -25,8 +25,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monolib.device import device
-from monolib.segmentation import colour_jitter, fit, normalise, resize_image, resize_nearest, set_seed, to_batch
+from monolib.device import device, seed_everything
+from monolib.segmentation import colour_jitter, fit, normalise, resize_image, resize_nearest, to_batch
 
 log = logging.getLogger(__name__)
 
@@ -347,7 +347,7 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
           deterministic: bool = True):
     """Train with `depth_loss` (`segmentation.fit`); keep the epoch with the best validation delta<1.25.
     Returns (model, history)."""
-    gen = set_seed(seed, deterministic)
+    gen = seed_everything(seed, deterministic)
     model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
     t0 = time.perf_counter()

@@ -88,13 +88,11 @@ class PredictionsMissing(io.DataFileError):
     """A model's predictions, which a scenario needs, are missing or unreadable (the message names the command)."""
 
 
-def missing_predictions(study: Study, name: str, cause) -> PredictionsMissing:
-    """The error of a missing or unreadable prediction of model `name`; an unreadable file is removed so that the
-    perception stage predicts that frame again."""
-    path = getattr(cause, "filename", None) or str(cause).split(": ")[0]
-    p = Path(path)
-    if p.is_file() and p.suffix == ".hdf5":  # present but unreadable (cut short): predict it again
-        p.unlink()
+def missing_predictions(study: Study, name: str, cause, unreadable: Optional[Path] = None) -> PredictionsMissing:
+    """The error of a missing or unreadable prediction of model `name`; an `unreadable` prediction file is removed
+    so that the perception stage predicts that frame again."""
+    if unreadable is not None:
+        unreadable.unlink(missing_ok=True)
     return PredictionsMissing(
         f"model {name!r} of study {study.name!r}: missing or unreadable prediction ({cause}). The graphs of a scenario "
         f"with predicted depth or semantics need every prediction; make them with `monolib perception "
@@ -102,8 +100,10 @@ def missing_predictions(study: Study, name: str, cause) -> PredictionsMissing:
 
 
 def check_predictions(study: Study, name: str, frames) -> None:
-    """`PredictionsMissing` unless model `name` has a prediction file for every frame (checked before a graph build,
-    which then reads each file and reports one that is cut short)."""
+    """`PredictionsMissing` unless model `name` has a prediction file for every frame (`_complete`; checked before a
+    graph build, which then reads each file and reports one that is cut short)."""
+    if _complete(study, name, frames):
+        return
     if not (model_dir(study, name) / "metrics.json").is_file():
         raise missing_predictions(study, name, f"{model_dir(study, name)}: the model has not been trained or evaluated")
     lacking = [f for f in frames if not prediction_path(study, name, f).is_file()]
@@ -116,7 +116,7 @@ def _read_pred(path: Path, study: Study, name: str) -> np.ndarray:
     try:
         return io.read_h5(path)
     except io.DataFileError as exc:
-        raise missing_predictions(study, name, exc) from None
+        raise missing_predictions(study, name, exc, unreadable=path if path.is_file() else None) from None
 
 
 def semantic_source(study: Study, name: str) -> Callable:

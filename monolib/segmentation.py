@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from monolib.device import device
+from monolib.device import device, seed_everything
 from monolib.labels import NUM_CLASSES
 
 log = logging.getLogger(__name__)
@@ -81,13 +81,6 @@ def colour_jitter(x: torch.Tensor, gen: torch.Generator, strength: float = 0.3) 
     grey = (0.299 * x[:, 0:1] + 0.587 * x[:, 1:2] + 0.114 * x[:, 2:3])
     x = (x - grey) * factor() + grey
     return x.clamp(0, 255)
-
-
-def set_seed(seed: int, deterministic: bool = True) -> torch.Generator:
-    """Seed everything (`monolib.device.seed_everything`); returns the CPU generator of the training draws."""
-    from monolib.device import seed_everything
-
-    return seed_everything(seed, deterministic)
 
 
 def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Optional[Callable],
@@ -305,7 +298,7 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
     Returns (model, history) where history = {"epochs": [{"epoch", "train_loss", "val_pixel_accuracy",
     "val_miou", "seconds"}], "best_epoch", "train_seconds", ...}. `max_steps` stops early (tests).
     """
-    gen = set_seed(seed, deterministic)
+    gen = seed_everything(seed, deterministic)
     model = build_model(spec).to(device())
     h, w = spec.train_height, spec.train_width
     t0 = time.perf_counter()
