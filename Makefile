@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long smoke zoo test bench clean-runs
+.PHONY: install study ablations perception-long smoke zoo test bench bench-grid clean-runs
 
 install: $(STAMP)
 
@@ -54,6 +54,11 @@ test: install
 
 bench: install
 	$(VENV)/bin/monolib bench --out figures/bench.json
+
+# the grid's cells per minute: the local path and local Dask clusters of 1 and 2 workers (smoke study), and the
+# paper study projected on 1, 8 and 64 workers from those per-cell costs
+bench-grid: install
+	$(VENV)/bin/monolib bench --grid --out figures/scaling.json
 
 clean-runs:
 	rm -rf runs/

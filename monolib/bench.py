@@ -7,12 +7,16 @@
 - graph construction alone at 256x192 and 1024x768, and against the original code's way (a Python double loop over
   the pixels, `original_graph`) on the same frames in the same run: the speedup ratio;
 - `make zoo`'s training time on this machine, projected from timed training steps of params/zoo.yaml's networks;
+- perception frames per second at 256x192 and 1024x768: each network of the study's perception block predicting
+  frames written in the Hypersim layout, through the perception stage's own DataLoader + batched predict path
+  (`perception.predict_frames`; untrained weights, the model's input at the measured resolution);
 - kNN over 600, 100k and 1M 64-d vectors: torch (cdist + topk) against a faiss flat index.
 """
 from __future__ import annotations
 
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -176,6 +180,76 @@ def zoo_training(study_name: str = "zoo", steps: int = 3) -> dict:
     return out
 
 
+def device_name(dev: torch.device) -> str:
+    """The GPU's name, or the CPU's model name (from /proc/cpuinfo where there is one)."""
+    if dev.type == "cuda":
+        return f"cuda: {torch.cuda.get_device_name(dev)}"
+    try:
+        with open("/proc/cpuinfo") as f:
+            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
+    except OSError:
+        names = []
+    return f"cpu: {names[0] if names else platform.processor() or platform.machine()}"
+
+
+def write_frames(root, width: int, height: int, frames: int, seed: int = 0):
+    """`frames` random HDR colour frames of one setting in the Hypersim layout under `root` (the colour files only,
+    gzip as Hypersim's); returns them as `Frame`s of a `HypersimDataset`."""
+    from monolib import io
+    from monolib.hypersim import HypersimDataset
+
+    rng = np.random.default_rng(seed)
+    images = Path(root) / "ai_000_001" / "images" / "scene_cam_00_final_hdf5"
+    for i in range(frames):
+        io.write_h5(images / f"frame.{i:04d}.color.hdf5", rng.random((height, width, 3), np.float32).astype(np.float16), 1)
+    return HypersimDataset(root).frames("ai_000_001")
+
+
+def perception_fps(study_name: str = "quick", sizes=((256, 192), (1024, 768)), frames=(16, 4)) -> dict:
+    """Frames per second of each network of the study's perception block (segmentation, then each depth net) at
+    each size (width, height): `frames[k]` frames at `sizes[k]`, written in the Hypersim layout to a temporary
+    folder and predicted with `perception.predict_frames` (the stage's DataLoader of `loader_workers` processes,
+    batches of `predict_batch`, `amp` on CUDA) at the study's torch threads; the network is built from the study's
+    spec with its input at that size (untrained weights: speed does not depend on them). `fps`: frames over the
+    wall-clock time of the whole pass (reading included); `inference_fps`: over the forward passes alone. One
+    frame is predicted first as a warm-up, untimed."""
+    import dataclasses
+    import tempfile
+
+    from monolib import depth, perception, segmentation
+    from monolib.device import device
+    from monolib.params import load_study
+
+    study = load_study(study_name, check_files=False)
+    spec = study.perception
+    dev = device()
+    nets = [(spec.segmentation, "segmentation")] + [(d, "depth") for d in spec.depth]
+    out = {"study": study_name, "device": device_name(dev), "batch": spec.predict_batch,
+           "loader_workers": spec.loader_workers, "amp": spec.amp and dev.type == "cuda", "threads": spec.threads,
+           "networks": {}}
+    with perception._threads(spec.threads), tempfile.TemporaryDirectory(prefix="monolib_fps_") as tmp:
+        for (width, height), n in zip(sizes, frames):
+            size = f"{width}x{height}"
+            shown = write_frames(Path(tmp) / size, width, height, n)
+            for net_spec, task in nets:
+                s = dataclasses.replace(net_spec, pretrained=False, train_width=width, train_height=height)
+                if task == "segmentation":
+                    model = segmentation.build_model(s)
+                elif s.checkpoint:  # an AdelaiDepth checkpoint: LeReS's own widths
+                    model = depth.build_leres(s.backbone, (height, width))
+                else:
+                    model = depth.build_model(s)
+                model = model.to(dev).eval()
+                predict = segmentation.predict if task == "segmentation" else depth.predict
+                predict(model, shown[0].rgb, spec.predict_batch, amp=spec.amp)  # warm-up, one frame
+                t = time.perf_counter()
+                seconds = perception.predict_frames(model, task, shown, spec, lambda frame, prediction: None)
+                wall = time.perf_counter() - t
+                out["networks"].setdefault(net_spec.name, {"task": task, "backbone": net_spec.backbone})[size] = {
+                    "frames": n, "fps": round(n / wall, 2), "inference_fps": round(n / seconds, 2)}
+    return out
+
+
 def run(width: int = 256, height: int = 192, study: str = "quick", out: str | None = None) -> dict:
     """Print every benchmark; with `out`, also write them as JSON (the README quotes `figures/bench.json`)."""
     import os
@@ -209,6 +283,17 @@ def run(width: int = 256, height: int = 192, study: str = "quick", out: str | No
         record["graph_vs_original"][f"{w}x{h}"] = r
         print(f"graph construction {w}x{h}, ours against the original's pixel double loop (same frame, this run): "
               f"{r['ours_ms']:.1f} ms vs {r['original_ms']:.0f} ms, {r['speedup']:.0f}x faster, same graph: {r['same_graph']}")
+    p = perception_fps(study)
+    record["perception_fps"] = p
+    first = next(iter(p["networks"].values()))
+    heads = {size: f"{size} ({r['frames']} frames)" for size, r in first.items() if "x" in size}
+    print(f"perception frames per second, the {study} study's networks (untrained) through the stage's DataLoader + "
+          f"predict, reading included (in brackets: the forward passes alone); {p['device']}, batch {p['batch']}, "
+          f"{p['loader_workers']} loader workers, amp {'on' if p['amp'] else 'off'}, {p['threads']} torch threads:")
+    print(f"  {'network':<12} {'backbone':<20}" + "".join(f"{h:>24}" for h in heads.values()))
+    for name, r in p["networks"].items():
+        cells = [f"{r[size]['fps']:.2f} ({r[size]['inference_fps']:.2f})" for size in heads]
+        print(f"  {name:<12} {r['backbone']:<20}" + "".join(f"{c:>24}" for c in cells))
     record["knn_ms_per_query"] = {}
     for n in (600, 100_000, 1_000_000):
         r = knn_ms(n)

@@ -19,6 +19,9 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("study", help="run every stage of a study (dataset, perception, graphs, cells, report)")
     p.add_argument("study", help="a study name from params/ (smoke, quick, paper) or a YAML path")
     p.add_argument("--jobs", type=int, default=None, help="parallel papermill workers (default: the study's jobs)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the cells on the workers of this Dask scheduler (tcp://host:8786, or the file of "
+                   "`dask scheduler --scheduler-file`); they must share this project's runs folder")
     p = sub.add_parser("synth", help="render a study's mini-Hypersim in the Hypersim layout")
     p.add_argument("study")
     p.add_argument("--out", required=True, help="output folder")
@@ -47,16 +50,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--study", default="quick", help="the study whose networks and resolution are timed")
     p.add_argument("--out", default=None, help="also write the figures as JSON (e.g. figures/bench.json)")
+    p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
+                   "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
-    for noisy in ("papermill", "traitlets", "nbclient"):
+    for noisy in ("papermill", "traitlets", "nbclient", "distributed"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
         if args.command == "study":
             from monolib import study as study_mod
 
             t0 = time.perf_counter()
-            times = study_mod.run(load_study(args.study), jobs=args.jobs)
+            times = study_mod.run(load_study(args.study), jobs=args.jobs, scheduler=args.scheduler)
             print("stage seconds: " + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in times.items())
                   + f"; total {time.perf_counter() - t0:.0f}")
         elif args.command == "synth":
@@ -98,9 +103,14 @@ def main(argv: list[str] | None = None) -> int:
             results = localize.localize(args.images, args.db, args.k)
             print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
         elif args.command == "bench":
-            from monolib import bench
+            if args.grid:
+                from monolib import scaling
 
-            bench.run(args.width, args.height, args.study, args.out)
+                scaling.run(out=args.out)
+            else:
+                from monolib import bench
+
+                bench.run(args.width, args.height, args.study, args.out)
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -26,7 +26,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from monolib.device import device, seed_everything
-from monolib.segmentation import colour_jitter, fit, normalise, resize_image, resize_nearest, to_batch
+from monolib.segmentation import (as_images, colour_jitter, fit, normalise, on_device, precision, resize_image,
+                                  resize_nearest, to_batch)
 
 log = logging.getLogger(__name__)
 
@@ -313,20 +314,25 @@ def summarise(per_frame: list[Optional[dict]]) -> dict:
 
 
 @torch.inference_mode()
-def predict(model: LeReSDepthModel, rgb, batch_size: int = 8) -> np.ndarray:
-    """uint8 images (N, H, W, 3) -> float32 (N, H, W) planar depth in metres (model resolution, resized back)."""
+def predict(model: LeReSDepthModel, rgb, batch_size: int = 8, amp: bool = False) -> np.ndarray:
+    """uint8 images (N, H, W, 3), a numpy array or a tensor (`segmentation.as_images`) -> float32 (N, H, W) planar
+    depth in metres (numpy; model resolution, resized back). `amp`: the forward pass in float16 autocast when the
+    model is on CUDA; its output is cast to float32 before the exp."""
     was_training = model.training
     model.eval()
-    x = to_batch(rgb)
+    x = as_images(rgb)
+    dev = next(model.parameters()).device
     h, w = model.input_size
     out = []
     for i in range(0, len(x), batch_size):
-        xb = normalise(x[i : i + batch_size].to(next(model.parameters()).device))
+        xb = normalise(on_device(x[i : i + batch_size], dev))
         if xb.shape[-2:] != (h, w):
             xb = F.interpolate(xb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-        raw = model(xb)
-        if raw.shape[-2:] != x.shape[-2:]:
-            raw = F.interpolate(raw, size=tuple(x.shape[-2:]), mode="bilinear", align_corners=False)
+        with precision(dev, amp):
+            raw = model(xb)
+        raw = raw.float()
+        if raw.shape[-2:] != x.shape[1:3]:
+            raw = F.interpolate(raw, size=tuple(x.shape[1:3]), mode="bilinear", align_corners=False)
         raw = raw[:, 0]
         if model.mode == "log":
             d = torch.exp(raw.clamp(max=6.0))

@@ -78,7 +78,11 @@ class DepthSpec:
 
 @dataclass
 class PerceptionSpec:
-    threads: int = 2
+    threads: int = 2                         # torch threads of the stage (training and prediction)
+    # prediction over the dataset (`perception._predict_all`): a DataLoader reads the frames' RGB, the net runs batched
+    predict_batch: int = 8                   # frames per forward pass (>= 1)
+    loader_workers: int = 2                  # worker processes reading frames (0: read in the main process)
+    amp: bool = True                         # float16 autocast of the forward pass on CUDA; ignored on the CPU
     segmentation: SegmentationSpec = field(default_factory=SegmentationSpec)
     depth: list[DepthSpec] = field(default_factory=lambda: [DepthSpec()])
 
@@ -352,6 +356,11 @@ def _check(study: Study, check_files: bool = True) -> None:
     names = study.model_names()
     if len(set(names)) != len(names) or "gt" in names:
         bad("perception", f"model names must be unique and not 'gt', got {names}")
+    if study.perception.predict_batch < 1:
+        bad("perception.predict_batch", f"expected at least 1 frame per forward pass, got {study.perception.predict_batch}")
+    if study.perception.loader_workers < 0:
+        bad("perception.loader_workers", f"expected 0 (read frames in the main process) or more worker processes, "
+                                         f"got {study.perception.loader_workers}")
     seg = study.perception.segmentation
     if seg.backbone not in ("resnet50", "resnet101", "mobilenet_v3_large"):
         bad("perception.segmentation.backbone", f"expected resnet50, resnet101 or mobilenet_v3_large, got {seg.backbone!r}")

@@ -46,8 +46,11 @@ def _spec(study: Study, name: str):
 
 
 def model_key(study: Study, name: str) -> str:
-    """Cache key of one model: its spec, the dataset's key, the seed, the device and deterministic mode, and the
-    version of the perception code (`monolib.versions`); GCN and scenario settings are not part of it."""
+    """Cache key of one model: its spec, the dataset's key, the seed, the device and deterministic mode, whether
+    the predictions are made in float16 (`perception.amp` on CUDA; never on the CPU), and the version of the
+    perception code (`monolib.versions`). Not part of it: GCN and scenario settings, the loader workers (which change
+    no prediction) and `predict_batch` (a throughput setting: on the CPU a depth prediction depends on the size of
+    its batch only in its last bits, and a new key would train the models again)."""
     from monolib.dataset import dataset_key
     from monolib.device import device
     from monolib.versions import code_version
@@ -60,6 +63,7 @@ def model_key(study: Study, name: str) -> str:
         shipped = zoo.read_manifest(resolve_path(spec.weights, study.path))["sha256"]
     return key_of({"task": task, "spec": dataclasses.asdict(spec), "dataset": dataset_key(study),
                    "seed": study.seed, "device": device().type, "deterministic": study.deterministic,
+                   "amp": study.perception.amp and device().type == "cuda",
                    "code": code_version("perception"), "weights": shipped})
 
 
@@ -240,26 +244,86 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
     return model, history, "trained"
 
 
-def _predict_all(study: Study, name: str, model, frames, progress: bool) -> tuple[int, float]:
-    """Predict the frames whose prediction file is missing; returns (frames predicted, seconds of inference)."""
-    from monolib.progress import tqdm
+class FrameImages:
+    """The frames' RGB as a map-style dataset of a `torch.utils.data.DataLoader`: item i is frame i's uint8
+    (H, W, 3) image, read where the loader runs it (a worker process, or the main one). It holds the dataset and
+    each frame's (setting, scene, index), and reads each image through a new `Frame`, so no image stays in memory."""
+
+    def __init__(self, frames):
+        self.frames = [(f.dataset, f.setting, f.scene, f.index) for f in frames]
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        dataset, setting, scene, index = self.frames[i]
+        frame = dataset.frame(setting, scene, index)
+        rgb = frame.rgb
+        if rgb is None:
+            raise io.DataFileError(f"{frame.files['color']}: file not found (the RGB a prediction is made from)")
+        return rgb
+
+
+def image_loader(frames, spec, dev):
+    """A DataLoader of the frames' RGB (`FrameImages`) in their order: batches of `spec.predict_batch` (N, H, W, 3)
+    uint8 tensors, read by `spec.loader_workers` worker processes (0: in the main process; never more than the
+    batches), in pinned memory when `dev` is CUDA. `spec`: the study's `PerceptionSpec`."""
+    from torch.utils.data import DataLoader
+
+    batches = -(-len(frames) // spec.predict_batch)
+    return DataLoader(FrameImages(frames), batch_size=spec.predict_batch, shuffle=False,
+                      num_workers=min(spec.loader_workers, batches), pin_memory=dev.type == "cuda",
+                      persistent_workers=False)
+
+
+def predict_frames(model, task: str, frames, spec, write: Callable, progress: bool = False,
+                   desc: str = "predict") -> float:
+    """Predict `frames` batch by batch through `image_loader` (under `torch.inference_mode`, float16 autocast on CUDA
+    with `spec.amp`) and hand each prediction to `write(frame, prediction)` as soon as its batch is done; returns
+    the seconds of inference (reading not counted). `task`: 'segmentation' or 'depth'."""
+    import torch
 
     from monolib import depth as dep
     from monolib import segmentation as seg
+    from monolib.progress import tqdm
 
+    predict = seg.predict if task == "segmentation" else dep.predict
+    dev = next(model.parameters()).device
+    seconds, done = 0.0, 0
+    with torch.inference_mode():
+        for rgb in tqdm(image_loader(frames, spec, dev), desc=desc, disable=not progress, leave=False):
+            t0 = time.perf_counter()
+            out = predict(model, rgb, spec.predict_batch, amp=spec.amp)
+            seconds += time.perf_counter() - t0
+            for f, p in zip(frames[done : done + len(out)], out):
+                write(f, p)
+            done += len(out)
+    return seconds
+
+
+def _predict_all(study: Study, name: str, model, frames, progress: bool) -> tuple[int, int, float]:
+    """Predict the frames whose prediction file is missing, each written (atomically) as its batch is done, so a
+    stopped run loses nothing predicted and the next one writes only the rest.
+
+    The batches are always the same runs of `predict_batch` frames of `frames`, and every batch holding a missing
+    frame is predicted whole (only its missing frames are written): on the CPU a prediction depends, in its last
+    bits, on the size of its batch, so a resumed run gives the uninterrupted run's predictions bit for bit.
+    Returns (frames written, frames through the network, seconds of inference)."""
     _, task = _spec(study, name)
-    todo = [f for f in frames if not prediction_path(study, name, f).is_file()]
-    bs = 8
-    seconds = 0.0
-    for i in tqdm(range(0, len(todo), bs), desc=f"predict {name}", disable=not progress, leave=False):
-        chunk = todo[i : i + bs]
-        rgb = np.stack([f.rgb for f in chunk])
-        t0 = time.perf_counter()
-        out = seg.predict(model, rgb, bs) if task == "segmentation" else dep.predict(model, rgb, bs)
-        seconds += time.perf_counter() - t0
-        for f, p in zip(chunk, out):
-            io.write_h5(prediction_path(study, name, f), p.astype(np.int16 if task == "segmentation" else np.float32))
-    return len(todo), seconds
+    b = study.perception.predict_batch
+    missing = {f.key for f in frames if not prediction_path(study, name, f).is_file()}
+    batches = [frames[i : i + b] for i in range(0, len(frames), b)]
+    todo = [f for batch in batches if any(g.key in missing for g in batch) for f in batch]
+    dtype = np.int16 if task == "segmentation" else np.float32
+
+    def write(frame, prediction):
+        if frame.key in missing:
+            io.write_h5(prediction_path(study, name, frame), prediction.astype(dtype))
+
+    if not todo:
+        return 0, 0, 0.0
+    return len(missing), len(todo), predict_frames(model, task, todo, study.perception, write, progress,
+                                                   f"predict {name}")
 
 
 def _evaluate(study: Study, name: str, test) -> dict:
@@ -324,13 +388,13 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
                 status[name] = "cached"
                 continue
             model, history, how = _train_or_load(study, name, sel, progress)
-            n_pred, secs = _predict_all(study, name, model, frames, progress)
+            n_pred, n_run, secs = _predict_all(study, name, model, frames, progress)
             metrics = _evaluate(study, name, sel.test)
             old = model_dir(study, name) / "metrics.json"
             old_ms = (io.load_cached(old, io.read_json_dict, f"test metrics of {name}") or {}).get("inference_ms_per_frame")
             metrics.update(
                 train_seconds=float(history.get("train_seconds", float("nan"))),
-                inference_ms_per_frame=(1000.0 * secs / n_pred) if n_pred else old_ms,
+                inference_ms_per_frame=(1000.0 * secs / n_run) if n_run else old_ms,
                 test_frames=len(sel.test), frames=len(keys), key=model_key(study, name),
             )
             io.write_json(model_dir(study, name) / "metrics.json", metrics)

@@ -7,6 +7,7 @@ Also holds the small tensor helpers the depth network shares (image normalisatio
 """
 from __future__ import annotations
 
+import contextlib
 import copy
 import logging
 import time
@@ -58,14 +59,37 @@ def normalise(x_uint8: torch.Tensor) -> torch.Tensor:
     return (x - MEAN.to(x.device)) / STD.to(x.device)  # the constants live on the CPU; the images may not
 
 
-def to_batch(rgb: np.ndarray | Sequence[np.ndarray]) -> torch.Tensor:
-    """(N, H, W, 3) uint8 array or list of (H, W, 3) -> (N, 3, H, W) uint8 tensor."""
-    arr = np.stack(list(rgb)) if not isinstance(rgb, np.ndarray) else rgb
-    if arr.ndim == 3:
-        arr = arr[None]
-    if arr.dtype != np.uint8 or arr.shape[-1] != 3:
-        raise ValueError(f"expected uint8 images (N, H, W, 3), got {arr.dtype} {arr.shape}")
-    return torch.from_numpy(np.ascontiguousarray(arr)).permute(0, 3, 1, 2).contiguous()
+def as_images(rgb: np.ndarray | Sequence[np.ndarray] | torch.Tensor) -> torch.Tensor:
+    """uint8 images -> one (N, H, W, 3) uint8 tensor: an (N, H, W, 3) or (H, W, 3) array, a list of (H, W, 3)
+    arrays, or a uint8 tensor of those shapes (a DataLoader's batch; it stays on its device, pinned or not)."""
+    if not isinstance(rgb, torch.Tensor):
+        arr = np.stack(list(rgb)) if not isinstance(rgb, np.ndarray) else rgb
+        if arr.dtype != np.uint8:
+            raise ValueError(f"expected uint8 images (N, H, W, 3), got {arr.dtype} {arr.shape}")
+        rgb = torch.from_numpy(np.ascontiguousarray(arr))
+    x = rgb[None] if rgb.ndim == 3 else rgb
+    if x.dtype != torch.uint8 or x.ndim != 4 or x.shape[-1] != 3:
+        raise ValueError(f"expected uint8 images (N, H, W, 3), got {x.dtype} {tuple(rgb.shape)}")
+    return x
+
+
+def to_batch(rgb: np.ndarray | Sequence[np.ndarray] | torch.Tensor) -> torch.Tensor:
+    """(N, H, W, 3) uint8 array, list of (H, W, 3) or uint8 tensor (`as_images`) -> (N, 3, H, W) uint8 tensor."""
+    return as_images(rgb).permute(0, 3, 1, 2).contiguous()
+
+
+def on_device(images: torch.Tensor, dev: torch.device) -> torch.Tensor:
+    """(N, H, W, 3) uint8 images -> (N, 3, H, W) uint8 on `dev`: copied as they are (asynchronously from pinned
+    memory), then laid out channels-first there."""
+    return images.to(dev, non_blocking=True).permute(0, 3, 1, 2).contiguous()
+
+
+def precision(dev: torch.device, amp: bool):
+    """The context of a forward pass for inference: float16 autocast on CUDA when `amp`, else float32 (the CPU
+    always: its predictions stay bit-identical)."""
+    if amp and dev.type == "cuda":
+        return torch.autocast(device_type="cuda", dtype=torch.float16)
+    return contextlib.nullcontext()
 
 
 def colour_jitter(x: torch.Tensor, gen: torch.Generator, strength: float = 0.3) -> torch.Tensor:
@@ -264,20 +288,24 @@ def scores(conf: np.ndarray) -> dict:
 # ---- training and inference --------------------------------------------------------------------------------
 
 @torch.inference_mode()
-def predict(model: nn.Module, rgb, batch_size: int = 8) -> np.ndarray:
-    """uint8 images (N, H, W, 3) -> int16 (N, H, W) NYU40 ids 1..40, predicted at the model's resolution."""
+def predict(model: nn.Module, rgb, batch_size: int = 8, amp: bool = False) -> np.ndarray:
+    """uint8 images (N, H, W, 3), a numpy array or a tensor (`as_images`) -> int16 (N, H, W) NYU40 ids 1..40 (numpy),
+    predicted at the model's resolution. `amp`: the forward pass in float16 autocast when the model is on CUDA."""
     was_training = model.training
     model.eval()
-    x = to_batch(rgb)
+    x = as_images(rgb)
+    dev = next(model.parameters()).device
     h, w = model.input_size
     out = []
     for i in range(0, len(x), batch_size):
-        xb = normalise(x[i : i + batch_size].to(next(model.parameters()).device))
+        xb = normalise(on_device(x[i : i + batch_size], dev))
         if xb.shape[-2:] != (h, w):
             xb = F.interpolate(xb, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
-        cls = model(xb)["out"].argmax(1, keepdim=True).float()
-        if cls.shape[-2:] != x.shape[-2:]:
-            cls = F.interpolate(cls, size=tuple(x.shape[-2:]), mode="nearest")
+        with precision(dev, amp):
+            logits = model(xb)["out"]
+        cls = logits.float().argmax(1, keepdim=True).float()
+        if cls.shape[-2:] != x.shape[1:3]:
+            cls = F.interpolate(cls, size=tuple(x.shape[1:3]), mode="nearest")
         out.append(cls[:, 0].to(torch.int16).cpu() + 1)
     model.train(was_training)
     return torch.cat(out).numpy()

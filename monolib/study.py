@@ -9,7 +9,7 @@ import logging
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -169,18 +169,25 @@ def _cell_notebook_path(study_name: str, cell_name: str) -> Path:
     return paths.study_dir(study_name) / "notebooks" / "cells" / f"{cell_name.replace('/', '__')}.ipynb"
 
 
-def _run_cell_notebook(study_file: str, study_name: str, cell: CellSpec, timeout: int) -> tuple[str, float]:
+def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int, env: dict[str, str]) -> tuple[str, float]:
+    """One cell of the grid as a worker runs it (a local process or a Dask worker): `ablation_cell.ipynb` through
+    papermill into `output`, in a kernel that inherits `env` (`monolib.cluster.task_environment`: the client's
+    runs folder and device). Returns (cell name, seconds)."""
     t0 = time.perf_counter()
-    out = _cell_notebook_path(study_name, cell.name)
-    execute(CELL_NOTEBOOK, out, {"study": study_file, "method": cell.method, "scenario": cell.scenario,
-                                  "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""}, timeout)
+    os.environ.update(env)
+    execute(CELL_NOTEBOOK, Path(output), {"study": study_file, "method": cell.method, "scenario": cell.scenario,
+                                          "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""},
+            timeout)
     return cell.name, time.perf_counter() - t0
 
 
-def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_process: bool = False) -> dict:
-    """Run every cell that has no results yet through papermill, in `jobs` parallel worker processes
-    (`in_process`: `monolib.cell.run_cell` one cell after the other in this process, no kernel per cell: what
-    `prepare` does for a notebook; the same function computes the same files)."""
+def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_process: bool = False,
+             scheduler: str | None = None) -> dict:
+    """Run every cell that has no results yet through papermill: in `jobs` local worker processes, or as tasks of
+    the Dask scheduler at `scheduler` (`monolib.cluster`; its workers share the runs folder). `in_process`:
+    `monolib.cell.run_cell` one cell after the other in this process, no kernel per cell: what `prepare` does for
+    a notebook; the same function computes the same files."""
+    from monolib import cluster
     from monolib.cell import cell_key, copy_cell, is_complete
 
     def folder(c: CellSpec) -> Path:
@@ -197,26 +204,33 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
           f"({len(todo) - len(run)} of them have the graphs of a smaller threshold: copied from it)", flush=True)
     jobs = jobs or study.jobs
     failed = []
+    seconds: dict[str, float] = {}  # wall seconds of each cell run (a notebook: kernel start included)
     t0 = time.perf_counter()
     if run and in_process:
         from monolib.cell import run_cell
 
         for c in tqdm(run, desc="cells", unit="cell", disable=not progress):
             try:
+                t = time.perf_counter()
                 run_cell(study, c.method, c.scenario, c.threshold, c.seed)
+                seconds[c.name] = time.perf_counter() - t
             except Exception as exc:
                 failed.append((c.name, exc))
                 log.error("cell %s failed: %s: %s", c.name, type(exc).__name__, exc)
     elif run:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = {pool.submit(_run_cell_notebook, study.path, study.name, c, study.cell_timeout): c for c in run}
+        env = cluster.task_environment()
+        with cluster.Workers(study, jobs, scheduler) as workers:
+            print(f"cells on {workers.describe()}", flush=True)
+            futures = {workers.submit(c.name, run_cell_notebook, study.path, c,
+                                      str(_cell_notebook_path(study.name, c.name)), study.cell_timeout, env): c
+                       for c in run}
             bar = tqdm(total=len(run), desc="cells", unit="cell", disable=not progress)
             for fut in as_completed(futures):
                 try:
-                    fut.result()
+                    seconds[futures[fut].name] = fut.result()[1]
                 except Exception as exc:
                     failed.append((futures[fut].name, exc))
-                    log.error("cell %s failed: %s", futures[fut].name, exc)
+                    log.error("cell %s failed: %s: %s", futures[fut].name, type(exc).__name__, exc)
                 bar.update(1)
             bar.close()
     for c in todo:
@@ -237,7 +251,7 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
                 lines.append(f"{name} (executed notebook: {_cell_notebook_path(study.name, name)})")
         raise NotebookFailed(f"{len(failed)} of {len(cells)} cells failed (their errors are above):"
                              + "".join(f"\n  {ln}" for ln in lines) + "\nre-run to retry only these")
-    return {"cells": len(cells), "ran": len(todo), "seconds": time.perf_counter() - t0}
+    return {"cells": len(cells), "ran": len(todo), "seconds": time.perf_counter() - t0, "cell_seconds": seconds}
 
 
 def prepare(study: Study | str, scenarios: list[str] | None = None, cells: bool = False,
@@ -297,12 +311,17 @@ def write_run_record(study: Study, times: dict, path: Path) -> None:
     write_json(path, record)
 
 
-def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
-    """All stages of a study, each skipped when its results exist. Returns timings per stage."""
+def run(study: Study, jobs: int | None = None, progress: bool = True, scheduler: str | None = None) -> dict:
+    """All stages of a study, each skipped when its results exist. Returns timings per stage. `scheduler`: the
+    address (or scheduler file) of a Dask scheduler whose workers run the cells (`monolib.cluster`)."""
     from monolib import dataset, fidelity, scenegraphs
 
     check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})
     check_notebook_parameters(REPORT_NOTEBOOK, {"study"})
+    if scheduler:
+        from monolib import cluster
+
+        cluster.check(scheduler, study)
     times = {}
     t = time.perf_counter()
     ds = None
@@ -339,7 +358,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True) -> dict:
 
     t = time.perf_counter()
     print("[4/5] cells", flush=True)
-    grid_run = run_grid(study, jobs, progress)
+    grid_run = run_grid(study, jobs, progress, scheduler=scheduler)
     times["cells_s"] = time.perf_counter() - t
 
     t = time.perf_counter()

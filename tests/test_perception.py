@@ -184,11 +184,11 @@ def test_run_caches_and_round_trips(tiny_study):
     d_name = tiny_study.perception.depth[0].name
     # every frame is cached; the cache equals what the saved model predicts (write -> read equals)
     model = segmentation.load_model(tiny_study.perception.segmentation, perception.model_dir(tiny_study, seg_name) / "model.pt")
-    fresh = segmentation.predict(model, np.stack([f.rgb for f in frames[:4]]))
+    fresh = segmentation.predict(model, np.stack([f.rgb for f in frames[:4]]), amp=tiny_study.perception.amp)
     read = perception.semantic_source(tiny_study, seg_name)
     assert all(np.array_equal(read(f), p) for f, p in zip(frames[:4], fresh))
     dmodel = depth.load_model(tiny_study.perception.depth[0], perception.model_dir(tiny_study, d_name) / "model.pt")
-    dfresh = depth.predict(dmodel, np.stack([f.rgb for f in frames[:4]]))
+    dfresh = depth.predict(dmodel, np.stack([f.rgb for f in frames[:4]]), amp=tiny_study.perception.amp)
     dread = perception.depth_source(tiny_study, d_name)
     assert all(np.allclose(dread(f), p, rtol=1e-5) for f, p in zip(frames[:4], dfresh))
     # the degenerate test frames (all-NaN depth, no labelled pixel) read fine from every source
@@ -269,8 +269,8 @@ def test_figures(tiny_study):
         row = fig.axes[r * ncol : (r + 1) * ncol]
         np.testing.assert_array_equal(row[0].images[0].get_array(), f.rgb)
         np.testing.assert_array_equal(np.ma.filled(row[1].images[0].get_array(), np.nan), f.depth.astype(np.float32))
-        np.testing.assert_allclose(np.asarray(row[2].images[0].get_array()), depth.predict(model, f.rgb[None])[0],
-                                   rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(row[2].images[0].get_array()),
+                                   depth.predict(model, f.rgb[None], amp=tiny_study.perception.amp)[0], rtol=1e-4)
         assert f.setting in row[0].get_ylabel()
     plt.close(fig)
 
@@ -312,6 +312,181 @@ def test_leres_structure_loads_its_own_keys(tmp_path):
     bad = depth.LeReSDepthModel("resnet18", 32, "leres", None, (64, 64))
     with pytest.raises(ValueError, match="does not match"):
         depth.load_adelai_checkpoint(bad, tmp_path / "res.pth")
+
+
+# ---- prediction over the dataset: DataLoader, batches, restart -------------------------------------------------
+
+def _untrained(study):
+    """The study's segmentation net and first depth net, seeded, untrained: [(name, task, model)]. Their BatchNorm
+    statistics are those of the study's frames (one forward pass), so that different frames predict differently."""
+    from monolib import depth, segmentation
+
+    torch.manual_seed(0)
+    nets = [(study.perception.segmentation.name, "segmentation", segmentation.build_model(study.perception.segmentation))]
+    nets += [(d.name, "depth", depth.build_model(d)) for d in study.perception.depth[:1]]
+    x = segmentation.normalise(segmentation.to_batch([f.rgb for f in _frames(study).train[::3]]))
+    for _, _, model in nets:
+        for m in model.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.reset_running_stats()
+                m.momentum = None  # the statistics of this one pass
+        with torch.no_grad():
+            model.train()(x)
+    return [(name, task, model.eval()) for name, task, model in nets]
+
+
+def _read_predictions(study, name, frames):
+    return [io.read_h5(perception_path(study, name, f)) for f in frames]
+
+
+def perception_path(study, name, frame):
+    from monolib import perception
+
+    return perception.prediction_path(study, name, frame)
+
+
+def test_loader_workers_change_no_prediction(tiny_study):
+    """Frames read by 2 worker processes give the predictions of frames read in the main process, bit for bit, each
+    written to its own frame's file (36 frames in batches of 5: a last batch of 1)."""
+    from monolib import perception
+
+    torch.set_num_threads(1)
+    frames = _frames(tiny_study).all()
+    tiny_study.perception.predict_batch = 5
+    for name, task, model in _untrained(tiny_study):
+        tiny_study.perception.loader_workers = 0
+        assert perception._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
+        in_main = _read_predictions(tiny_study, name, frames)
+        for f in frames:
+            perception_path(tiny_study, name, f).unlink()
+        tiny_study.perception.loader_workers = 2
+        assert perception._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
+        in_workers = _read_predictions(tiny_study, name, frames)
+        assert len({p.tobytes() for p in in_main}) > 1  # different frames, different predictions
+        assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(in_main, in_workers)), name
+
+
+def test_a_stopped_run_predicts_only_the_missing_frames(tiny_study, monkeypatch):
+    """A run stopped after 7 files keeps them; the next run writes only the other frames' files, runs the network on
+    their batches only (the 2nd batch of 4, partly written, again: the same batches as an uninterrupted run), touches
+    no file already written, and ends with the predictions of an uninterrupted run, bit for bit."""
+    from monolib import perception
+
+    torch.set_num_threads(1)
+    frames = _frames(tiny_study).all()
+    tiny_study.perception.predict_batch, tiny_study.perception.loader_workers = 4, 2
+    name, task, model = _untrained(tiny_study)[1]
+    perception._predict_all(tiny_study, name, model, frames, progress=False)
+    whole = _read_predictions(tiny_study, name, frames)
+    for f in frames:
+        perception_path(tiny_study, name, f).unlink()
+
+    write_h5, written = io.write_h5, []
+
+    def write_then_stop(path, array, *args, **kwargs):
+        if len(written) == 7:
+            raise KeyboardInterrupt("stopped")
+        write_h5(path, array, *args, **kwargs)
+        written.append(Path(path))
+
+    monkeypatch.setattr(io, "write_h5", write_then_stop)
+    with pytest.raises(KeyboardInterrupt):
+        perception._predict_all(tiny_study, name, model, frames, progress=False)
+    monkeypatch.setattr(io, "write_h5", write_h5)
+    assert [p for p in (perception_path(tiny_study, name, f) for f in frames) if p.is_file()] == written
+    before = {p: os.stat(p).st_mtime_ns for p in written}
+    n, through_the_net, _ = perception._predict_all(tiny_study, name, model, frames, progress=False)
+    assert (n, through_the_net) == (len(frames) - 7, len(frames) - 4)
+    assert {p: os.stat(p).st_mtime_ns for p in written} == before
+    assert all(np.array_equal(a, b) for a, b in zip(whole, _read_predictions(tiny_study, name, frames)))
+    assert perception._predict_all(tiny_study, name, model, frames, progress=False) == (0, 0, 0.0)
+
+
+def test_predict_takes_a_tensor_batch_as_it_takes_numpy(tiny_study):
+    """The DataLoader's uint8 (N, H, W, 3) tensor batch and the numpy array of the same frames predict the same, bit
+    for bit; an image in another layout is one clear error."""
+    from monolib import depth, perception, segmentation
+
+    torch.set_num_threads(1)
+    frames = _frames(tiny_study).test[:5]
+    rgb = np.stack([f.rgb for f in frames])
+    batch = next(iter(perception.image_loader(frames, tiny_study.perception, torch.device("cpu"))))
+    assert batch.dtype == torch.uint8 and tuple(batch.shape) == rgb.shape and np.array_equal(batch.numpy(), rgb)
+    for name, task, model in _untrained(tiny_study):
+        predict = segmentation.predict if task == "segmentation" else depth.predict
+        a, b = predict(model, rgb, 2), predict(model, batch, 2)
+        assert isinstance(b, np.ndarray) and a.dtype == b.dtype and np.array_equal(a, b), name
+        assert np.array_equal(predict(model, rgb[0], 2), predict(model, batch[:1], 2))  # one (H, W, 3) image
+    with pytest.raises(ValueError, match=r"expected uint8 images \(N, H, W, 3\)"):
+        segmentation.predict(model, batch.permute(0, 3, 1, 2))
+    with pytest.raises(ValueError, match="expected uint8 images"):
+        segmentation.predict(model, batch.float())
+
+
+def test_float16_only_on_cuda_and_in_the_key_only_there(tiny_study, monkeypatch):
+    """`amp` is float16 autocast on CUDA, float32 on the CPU; it enters the model's key only on CUDA (the CPU's
+    predictions, and its keys, do not depend on it). The batch and the loader workers are never in the key."""
+    import monolib.device
+    from monolib import perception, segmentation
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    assert not isinstance(segmentation.precision(cpu, True), torch.autocast)
+    assert not isinstance(segmentation.precision(cuda, False), torch.autocast)
+    with pytest.warns(UserWarning, match="CUDA is not available") if not torch.cuda.is_available() else _nothing():
+        ctx = segmentation.precision(cuda, True)
+    assert isinstance(ctx, torch.autocast) and ctx.device == "cuda" and ctx.fast_dtype == torch.float16
+    # on the device of the data: copied as (N, H, W, 3), laid out channels-first there
+    x = segmentation.on_device(torch.zeros((2, 6, 8, 3), dtype=torch.uint8), torch.device("meta"))
+    assert x.device.type == "meta" and tuple(x.shape) == (2, 3, 6, 8) and x.is_contiguous()
+
+    name = tiny_study.perception.segmentation.name
+    spec = tiny_study.perception
+
+    def keys(dev):
+        monkeypatch.setattr(monolib.device, "device", lambda: dev)
+        out = []
+        for amp, batch, workers in [(True, 8, 2), (False, 8, 2), (True, 3, 0)]:
+            spec.amp, spec.predict_batch, spec.loader_workers = amp, batch, workers
+            out.append(perception.model_key(tiny_study, name))
+        return out
+
+    on_cpu, on_cuda = keys(cpu), keys(cuda)
+    assert on_cpu[0] == on_cpu[1] == on_cpu[2]
+    assert on_cuda[0] != on_cuda[1] and on_cuda[0] == on_cuda[2] and on_cuda[1] != on_cpu[1]
+
+
+class _nothing:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"loader_workers": -1}, "perception.loader_workers: expected 0 .* got -1"),
+    ({"predict_batch": 0}, "perception.predict_batch: expected at least 1 .* got 0"),
+    ({"amp": "yes"}, "perception.amp: expected true or false, got 'yes'"),
+    ({"amp": 1}, "perception.amp: expected true or false, got 1"),
+    ({"loader_workers": 1.5}, "perception.loader_workers: expected an integer"),
+    ({"predict_batches": 4}, "perception.predict_batches: unknown key"),
+])
+def test_bad_prediction_keys_name_the_key(tmp_path, change, message):
+    import yaml
+
+    from monolib.params import StudyError
+
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data["perception"].update(change)
+    p = tmp_path / "study.yaml"
+    p.write_text(yaml.safe_dump(data))
+    with pytest.raises(StudyError, match=message):
+        load_study(p)
+
+
+def test_prediction_keys_default_to_the_batch_of_before():
+    spec = load_study("smoke").perception
+    assert (spec.predict_batch, spec.loader_workers, spec.amp) == (8, 2, True)
 
 
 @pytest.mark.slow

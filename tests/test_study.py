@@ -27,14 +27,6 @@ def cell_files(study: str):
     return sorted((paths.study_dir(study) / "cells").glob("*/*/cell.json"))
 
 
-@pytest.fixture(scope="session")
-def smoke_study():
-    """`monolib study smoke`, as `make smoke` runs it (cached stages make a second session cheap)."""
-    out = subprocess.run(MONOLIB + ["study", "smoke"], cwd="/", env=ENV, capture_output=True, text=True, timeout=1800)
-    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
-    return out
-
-
 def test_smoke_study_writes_every_table_and_figure(smoke_study):
     s = load_study("smoke")
     fig = paths.figures_dir("smoke")

@@ -1,0 +1,181 @@
+"""What the grid costs and how it scales: `monolib bench --grid` (`make bench-grid`, writes `figures/scaling.json`).
+
+`measure` runs the cells of a small study (the smoke study by default) three times from empty cell folders, over the
+same cached dataset, perception and graphs: on the current local path (the study's `jobs` worker processes), on a
+local Dask cluster of 1 worker and on one of 2 workers (`distributed.LocalCluster`, one single-threaded worker
+process each, as `dask worker --nthreads 1` starts them). Each run gives cells per minute; every cell's wall time
+(the papermill notebook, kernel start included) is set against the compute time its `cell.json` records
+(`timings`: graphs, train, embed, retrieval), which gives the notebook overhead per cell.
+
+`project` turns those costs into the hours of the paper study (`params/paper.yaml`: ~12,000 frames, 5 thresholds x
+5 seeds x 4 scenarios, with and without the encoder variants of `params/ablations.yaml`) on 1, 8 and 64 workers.
+Its model, stated so that it can be checked: a GCN cell costs the notebook overhead measured above (wall time minus
+the compute its `cell.json` records), plus its training: the paper's training graphs times its epochs (`gcn.epochs`,
+an upper bound: early stopping ends most runs sooner) times the seconds per (graph x epoch) of `gcn.train` timed
+here with the paper's encoder settings (batch size, layers) on the measured study's graphs repeated to a
+paper-sized epoch (the smoke cells' own training is too small to measure it: a few batches per epoch, where fixed
+costs dominate). Cells are independent and of equal cost, so W workers take ceil(cells / W) rounds. The measured
+graphs and real Hypersim's have about the same number of nodes (both recorded), which is what lets a per-graph cost
+carry over.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+
+from monolib import paths
+from monolib.params import load_study
+
+WORKERS = (1, 8, 64)
+PAPER_TRAIN_FRAMES = 11_300  # the paper, "Hypersim Dataset": ~12,000 images, 11,300 of them for training
+
+
+def _study_file(base: str, engine: str) -> Path:
+    """A study that `extends` the base (its dataset, models and graphs) with cells of its own."""
+    from monolib.io import write_text
+
+    name = f"{base}_scaling_{engine}"
+    path = paths.study_dir(name) / f"{name}.yaml"
+    write_text(path, f"extends: {base}\nname: {name}\n")
+    return path
+
+
+def _cells(study) -> list[dict]:
+    from monolib.io import read_json
+
+    return [read_json(f) for f in sorted((study.dir / "cells").glob("*/*/cell.json"))]
+
+
+def _one_run(base: str, engine: str, jobs: int, scheduler: str | None) -> dict:
+    from monolib import study as study_mod
+
+    path = _study_file(base, engine)
+    s = load_study(str(path))
+    for sub in ("cells", "notebooks"):
+        shutil.rmtree(s.dir / sub, ignore_errors=True)
+    t0 = time.perf_counter()
+    grid = study_mod.run_grid(s, jobs=jobs, progress=False, scheduler=scheduler)
+    seconds = time.perf_counter() - t0
+    records = {f"{r['method']}/{r['scenario']}__t{paths.threshold_tag(float(r['threshold']))}__s{r['seed']}": r
+               for r in _cells(s) if "same_graphs_as" not in r}
+    per_cell = [{"cell": name, "wall_s": round(wall, 2), "compute_s": round(sum(records[name]["timings"].values()), 2),
+                 "train_s": round(records[name]["timings"].get("train_s", 0.0), 2),
+                 "epochs_run": records[name].get("epochs_run")} for name, wall in sorted(grid["cell_seconds"].items())]
+    return {"seconds": round(seconds, 1), "cells": grid["cells"], "computed": len(per_cell),
+            "cells_per_minute": round(60 * len(per_cell) / seconds, 2), "per_cell": per_cell}
+
+
+def measure(base: str = "smoke", dask_workers: tuple[int, ...] = (1, 2)) -> dict:
+    """Cells per minute of the base study's grid on the local path and on local Dask clusters (see the module)."""
+    from distributed import LocalCluster
+
+    from monolib import study as study_mod
+
+    s = study_mod.prepare(base, progress=False)  # dataset, perception, graphs: cached, not timed
+    out = {"study": base, "jobs": s.jobs, "threads_per_cell": s.threads, "engines": {}}
+    out["engines"]["local"] = {"workers": s.jobs, **_one_run(base, "local", s.jobs, None)}
+    for n in dask_workers:
+        t0 = time.perf_counter()
+        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
+            start = time.perf_counter() - t0
+            out["engines"][f"dask{n}"] = {"workers": n, "cluster_start_s": round(start, 1),
+                                          **_one_run(base, f"dask{n}", n, cluster.scheduler_address)}
+    out["training"] = training_rate(s, load_study("paper", check_files=False))
+    return out
+
+
+def training_rate(study, paper, graphs: int = 2048, epochs: int = 2, threshold: float = 2.0) -> dict:
+    """Seconds per (training graph x epoch) of `gcn.train` with `paper`'s encoder settings, on `study`'s
+    ground-truth training graphs (at `threshold`) repeated to `graphs` graphs, at `study`'s torch threads."""
+    from monolib import gcn, graph, scenegraphs
+
+    source = scenegraphs.load(study, next(iter(study.scenarios)))
+    train = [graph.at_threshold(g, threshold) for g in source["train"]]
+    repeated = [train[i % len(train)] for i in range(graphs)]
+    spec = dataclasses.replace(paper.gcn, epochs=epochs, patience=epochs + 1)
+    t0 = time.perf_counter()
+    gcn.train(repeated, [graph.at_threshold(g, threshold) for g in source["val"]], spec, seed=study.seed,
+              threads=study.threads, deterministic=study.deterministic)
+    seconds = time.perf_counter() - t0
+    return {"graphs": graphs, "epochs": epochs, "batch_size": spec.batch_size, "threads": study.threads,
+            "seconds": round(seconds, 2), "s_per_graph_epoch": seconds / (graphs * epochs),
+            "nodes_per_graph": round(float(np.mean([g.num_nodes for g in train])), 2)}
+
+
+def project(measured: dict, paper: str = "paper", variants_from: str = "ablations") -> dict:
+    """Hours of the paper study's GCN cells on 1, 8 and 64 workers from `measured`'s per-cell costs."""
+    from monolib import methods
+    from monolib.fidelity import read_reference
+    from monolib.study import grid
+
+    cells = [c for e in measured["engines"].values() for c in e["per_cell"]]
+    overhead = float(np.median([c["wall_s"] - c["compute_s"] for c in cells]))
+    rate = measured["training"]["s_per_graph_epoch"]
+    study = load_study(paper, check_files=False)
+    train_graphs = PAPER_TRAIN_FRAMES
+    cell_s = rate * train_graphs * study.gcn.epochs + overhead
+    extra = load_study(variants_from, check_files=False).variants
+    with_variants = dataclasses.replace(study, variants=extra)
+    counts = {}
+    for label, s in (("paper", study), ("paper + encoder variants", with_variants)):
+        counts[label] = sum(methods.kind(c.method, s) == "graph" for c in grid(s))
+    hours = {label: {str(w): round(math.ceil(n / w) * cell_s / 3600, 2) for w in WORKERS} for label, n in counts.items()}
+    return {"train_s_per_graph_epoch": round(rate, 6), "overhead_s_per_cell": round(overhead, 1),
+            "paper_train_graphs": train_graphs,
+            "paper_epochs": study.gcn.epochs, "paper_cell_minutes": round(cell_s / 60, 1),
+            "graph_cells": counts, "hours": hours, "workers": list(WORKERS),
+            "nodes_per_graph": {"measured": measured["training"]["nodes_per_graph"],
+                                "real_hypersim_train": read_reference()["real Hypersim, train"]["nodes per graph, mean"]}}
+
+
+def markdown(record: dict) -> str:
+    """The measured cells per minute and the projection, as the README shows them (`figures/scaling.md`)."""
+    p = record["projection"]
+    lines = [f"**The {record['study']} grid on each engine** ({record['machine']}, {record['cpus']} cores, "
+             f"{record['date']}; {record['threads_per_cell']} torch threads per cell; `monolib bench --grid`)", "",
+             "| engine | workers | cells computed (copied) | seconds | cells per minute |", "|---|---:|---:|---:|---:|"]
+    names = {"local": "local process pool (no `--scheduler`)"}
+    for name, e in record["engines"].items():
+        label = names.get(name, f"local Dask cluster (`--scheduler`), started in {e.get('cluster_start_s', 0):.0f} s")
+        lines.append(f"| {label} | {e['workers']} | {e['computed']} ({e['cells'] - e['computed']}) | {e['seconds']:.0f} "
+                     f"| {e['cells_per_minute']:.2f} |")
+    t = record["training"]
+    lines += ["", f"**The paper study projected** from these runs and one timed training: "
+              f"{p['overhead_s_per_cell']:.1f} s of notebook overhead per cell (median over "
+              f"{sum(e['computed'] for e in record['engines'].values())} cell runs of their wall time minus the compute "
+              f"their `cell.json` records), and {1000 * p['train_s_per_graph_epoch']:.2f} ms of GCN training per graph "
+              f"and epoch (`gcn.train` with the paper's encoder settings, batch {t['batch_size']}, {t['threads']} "
+              f"threads: {t['graphs']} graphs x {t['epochs']} epochs in {t['seconds']:.0f} s; the graphs have "
+              f"{p['nodes_per_graph']['measured']:.1f} nodes on average, real Hypersim's "
+              f"{p['nodes_per_graph']['real_hypersim_train']:.1f}). A paper cell ({p['paper_train_graphs']:,} training "
+              f"graphs x {p['paper_epochs']} epochs, an upper bound: early stopping ends most runs sooner) then takes "
+              f"{p['paper_cell_minutes']:.0f} min on one worker.", "",
+             "| study | GCN cells | " + " | ".join(f"{w} worker{'s' * (w > 1)} (h)" for w in p["workers"]) + " |",
+             "|---|---:|" + "---:|" * len(p["workers"])]
+    for label, hours in p["hours"].items():
+        lines.append(f"| {label} | {p['graph_cells'][label]} | " + " | ".join(f"{h:.1f}" for h in hours.values()) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def run(base: str = "smoke", out: str | None = None) -> dict:
+    """`measure` and `project`, printed; with `out`, written as JSON (the README quotes `figures/scaling.json`)."""
+    import os
+    import platform
+
+    record = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "cpus": os.cpu_count(),
+              "date": time.strftime("%Y-%m-%d"), **measure(base)}
+    record["projection"] = project(record)
+    text = markdown(record)
+    print(text, end="")
+    if out:
+        from monolib.io import write_json, write_text
+
+        write_json(out, record)
+        write_text(Path(out).with_suffix(".md"), text)
+        print(f"written: {out} and {Path(out).with_suffix('.md').name}")
+    return record

@@ -1,0 +1,159 @@
+"""The grid on a Dask cluster started as a user starts one (`dask scheduler`, `dask worker --nworkers 2`): the
+same files as the local path, a worker killed in the middle of a cell, and workers that do not match the client."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+
+from monolib import paths
+from monolib.params import StudyError, load_study
+
+pytestmark = pytest.mark.slow
+MONOLIB = [sys.executable, "-m", "monolib.cli"]
+DASK = str(Path(sys.executable).parent / "dask")
+ENV = {**os.environ, "MPLBACKEND": "agg"}
+
+
+def wait_for(condition, seconds: float, what: str):
+    deadline = time.time() + seconds
+    while time.time() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.2)
+    raise AssertionError(f"timed out after {seconds} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def scheduler_file(tmp_path_factory):
+    """A scheduler and two single-threaded worker processes (under one nanny each), on the loopback interface."""
+    from distributed import Client
+
+    d = tmp_path_factory.mktemp("dask")
+    path = d / "scheduler.json"
+    log = open(d / "cluster.log", "w")
+    common = ["--host", "127.0.0.1", "--scheduler-file", str(path)]
+    procs = [subprocess.Popen([DASK, "scheduler", *common, "--port", "0", "--dashboard-address", ":0"], env=ENV,
+                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True)]
+    wait_for(path.is_file, 60, "the scheduler file")
+    procs.append(subprocess.Popen([DASK, "worker", *common, "--nworkers", "2", "--nthreads", "1", "--no-dashboard",
+                                   "--local-directory", str(d / "workers")], env=ENV, stdout=log,
+                                  stderr=subprocess.STDOUT, start_new_session=True))
+    with Client(scheduler_file=str(path), timeout=60) as client:
+        client.wait_for_workers(2, timeout=120)
+    yield path
+    for p in procs:
+        os.killpg(p.pid, signal.SIGTERM)
+    for p in procs:
+        try:
+            p.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+    log.close()
+
+
+def ground_truth_study(tmp_path, name: str, thresholds: list, seeds: list) -> Path:
+    """A study over the smoke study's dataset with its ground-truth scenario only (no perception to train)."""
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data.update(name=name, thresholds=thresholds, seeds=seeds, jobs=2, scenarios={"s1": data["scenarios"]["s1"]})
+    data["dataset"]["root"] = str(load_study("smoke").dataset_root)
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    subprocess.run(["rm", "-rf", str(paths.study_dir(name))], check=True)
+    return path
+
+
+def cell_records(study: str) -> dict:
+    return {f.parent.name: f for f in (paths.study_dir(study) / "cells" / "gcn").glob("*/cell.json")}
+
+
+def same_cell(a: Path, b: Path) -> None:
+    """Two runs of one cell: the same metrics, rankings, protocol draw and embeddings."""
+    ra, rb = json.loads(a.read_text()), json.loads(b.read_text())
+    assert ra["metrics"] == rb["metrics"] and ra["best_epoch"] == rb["best_epoch"]
+    for name in ("rankings.csv", "protocol.csv", "history.csv", "embeddings.npy"):
+        assert (a.parent / name).read_bytes() == (b.parent / name).read_bytes(), name
+
+
+def test_the_grid_on_two_dask_workers_gives_the_files_of_the_local_path(smoke_study, scheduler_file, tmp_path):
+    study_file = ground_truth_study(tmp_path, "smoke_dask", [0, 2], [0])
+    out = subprocess.run(MONOLIB + ["study", str(study_file), "--scheduler", str(scheduler_file)], env=ENV,
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
+    assert "cells on 2 Dask workers" in out.stdout
+    local, dask = cell_records("smoke"), cell_records("smoke_dask")
+    assert sorted(dask) == ["s1__t0__s0", "s1__t2__s0"]
+    for name, record in dask.items():  # smoke ran these cells on the local process pool
+        same_cell(record, local[name])
+
+
+def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_file, tmp_path):
+    """SIGKILL the worker process that runs a cell once another cell has finished: the scheduler hands the cell
+    to a worker again (the nanny restarts the dead one), the study completes, the finished cells are not run
+    again, and the re-run cell has the numbers of an uninterrupted run."""
+    from distributed import Client
+
+    study_file = ground_truth_study(tmp_path, "smoke_dask_kill", [1, 2], [0, 1])
+    proc = subprocess.Popen(MONOLIB + ["study", str(study_file), "--scheduler", str(scheduler_file)], env=ENV,
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        with Client(scheduler_file=str(scheduler_file), timeout=60) as client:
+            def busy_worker():  # a worker running a cell whose notebook kernel has started, once one cell is done
+                if not cell_records("smoke_dask_kill"):
+                    return None
+                running = {w: keys for w, keys in client.processing().items() if any("cell " in k for k in keys)}
+                notebooks = list((paths.study_dir("smoke_dask_kill") / "notebooks" / "cells").glob("*.ipynb"))
+                return next(iter(running), None) if len(notebooks) > len(cell_records("smoke_dask_kill")) else None
+
+            worker = wait_for(busy_worker, 600, "a worker running a cell after a first cell finished")
+            done = {name: f.stat().st_mtime_ns for name, f in cell_records("smoke_dask_kill").items()}
+            pid = client.run(os.getpid, workers=[worker])[worker]
+            os.kill(pid, signal.SIGKILL)
+        out, _ = proc.communicate(timeout=900)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 0, out[-3000:]
+    after = cell_records("smoke_dask_kill")
+    assert len(after) == 4 and 1 <= len(done) < 4
+    assert all(after[name].stat().st_mtime_ns == t for name, t in done.items())  # finished: not run again
+    from monolib.cell import run_cell
+
+    s = load_study(str(study_file))
+    for name in set(after) - set(done):  # the rest (the killed cell among them) as an uninterrupted run makes them
+        record = json.loads(after[name].read_text())
+        fresh = run_cell(s, "gcn", "s1", float(record["threshold"]), record["seed"], out_dir=str(tmp_path / name))
+        assert fresh["metrics"] == record["metrics"]
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / name / "rankings.csv"),
+                                      pd.read_csv(after[name].parent / "rankings.csv"))
+    again = subprocess.run(MONOLIB + ["study", str(study_file), "--scheduler", str(scheduler_file)], env=ENV,
+                           capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0 and "4 already complete, 0 to run" in again.stdout, again.stdout[-2000:]
+
+
+def test_workers_that_run_other_code_are_refused_before_any_cell(scheduler_file, tmp_path, monkeypatch):
+    from monolib import cluster, versions
+
+    study_file = ground_truth_study(tmp_path, "smoke_dask_refused", [1], [0])
+    monkeypatch.setattr(versions, "code_version", lambda stage: "another version")  # this side only
+    with pytest.raises(StudyError, match=r"2 problem\(s\) with the workers:(\n  tcp://127.0.0.1:\d+: runs other "
+                                         r"monolib code .*){2}"):
+        cluster.connect(str(scheduler_file), load_study(str(study_file)))
+
+
+def test_no_scheduler_at_the_address_is_one_clear_error(tmp_path):
+    from monolib import cluster
+
+    study_file = ground_truth_study(tmp_path, "smoke_dask_none", [1], [0])
+    with pytest.raises(StudyError, match="no Dask scheduler answered within 3 s"):
+        cluster.connect("tcp://127.0.0.1:9", load_study(str(study_file)), timeout=3)
+    out = subprocess.run(MONOLIB + ["study", str(study_file), "--scheduler", "tcp://127.0.0.1:9"],
+                         env={**ENV, "MONOLIB_CONNECT_SECONDS": "3"}, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 2 and "error: --scheduler tcp://127.0.0.1:9: no Dask scheduler" in out.stderr
