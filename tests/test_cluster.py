@@ -105,15 +105,20 @@ def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_fi
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
         with Client(scheduler_file=str(scheduler_file), timeout=60) as client:
-            def busy_worker():  # a worker running a cell whose notebook kernel has started, once one cell is done
-                if not cell_records("smoke_dask_kill"):
-                    return None
-                running = {w: keys for w, keys in client.processing().items() if any("cell " in k for k in keys)}
-                notebooks = list((paths.study_dir("smoke_dask_kill") / "notebooks" / "cells").glob("*.ipynb"))
-                return next(iter(running), None) if len(notebooks) > len(cell_records("smoke_dask_kill")) else None
+            def running_cell():  # (worker, cell) of a cell whose notebook has started, once another cell is done
+                done = cell_records("smoke_dask_kill")
+                started = {p.stem.removeprefix("gcn__") for p in
+                           (paths.study_dir("smoke_dask_kill") / "notebooks" / "cells").glob("*.ipynb")}
+                for name in sorted(started - set(done)) if done else []:
+                    for w, keys in client.processing().items():
+                        if any(k.startswith(f"cell gcn/{name} ") for k in keys):
+                            return w, name
+                return None
 
-            worker = wait_for(busy_worker, 600, "a worker running a cell after a first cell finished")
+            worker, killed = wait_for(running_cell, 600, "a worker running a cell after a first cell finished")
+            time.sleep(2)  # into the cell: its kernel is computing
             done = {name: f.stat().st_mtime_ns for name, f in cell_records("smoke_dask_kill").items()}
+            assert killed not in done
             pid = client.run(os.getpid, workers=[worker])[worker]
             os.kill(pid, signal.SIGKILL)
         out, _ = proc.communicate(timeout=900)
@@ -122,7 +127,7 @@ def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_fi
             os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 0, out[-3000:]
     after = cell_records("smoke_dask_kill")
-    assert len(after) == 4 and 1 <= len(done) < 4
+    assert len(after) == 4 and 1 <= len(done) < 4 and killed in after
     assert all(after[name].stat().st_mtime_ns == t for name, t in done.items())  # finished: not run again
     from monolib.cell import run_cell
 
