@@ -23,7 +23,7 @@ import pandas as pd
 import torch
 
 from monolib import gcn, graph, methods, paths, retrieval, scenegraphs
-from monolib.io import atomic_path, load_cached, read_json, read_json_dict, write_json, write_text
+from monolib.io import atomic_path, load_cached, read_json, read_json_dict, save_torch, write_json, write_text
 from monolib.params import Study, StudyError
 
 log = logging.getLogger(__name__)
@@ -149,8 +149,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     if history is not None:
         write_text(folder / "history.csv", history.to_csv(index=False))
     if state is not None:
-        with atomic_path(folder / "model.pt") as tmp:
-            torch.save(state, tmp)
+        save_torch(folder / "model.pt", state)
     write_json(folder / "cell.json", record)  # last: marks the cell complete
     return record
 

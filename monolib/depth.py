@@ -380,11 +380,10 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
 
 
 def save_model(model: LeReSDepthModel, path) -> None:
-    from monolib.io import atomic_path
+    from monolib.io import save_torch
 
-    with atomic_path(path) as tmp:
-        torch.save({"state_dict": model.state_dict(), "mode": model.mode, "scale": float(model.scale),
-                    "input_size": list(model.input_size)}, tmp)
+    save_torch(path, {"state_dict": model.state_dict(), "mode": model.mode, "scale": float(model.scale),
+                      "input_size": list(model.input_size)})
 
 
 def load_model(spec, path) -> LeReSDepthModel:

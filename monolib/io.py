@@ -37,6 +37,17 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp.unlink()
 
 
+def save_torch(path: str | os.PathLike, obj) -> None:
+    """`torch.save` atomically (`atomic_path`), through a file object, so that the bytes depend on `obj` alone: given
+    a path, torch names the archive inside the file after it, and the temporary name would make two saves of the
+    same weights differ (and a shipped file's sha256 with them)."""
+    import torch
+
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+
+
 def write_text(path: str | os.PathLike, text: str) -> None:
     with atomic_path(path) as tmp:
         tmp.write_text(text)

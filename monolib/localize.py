@@ -27,7 +27,7 @@ from monolib import gcn, graph, paths, perception, scenegraphs
 from monolib.device import device
 from monolib.graph import scene_nodes
 from monolib.hypersim import Camera
-from monolib.io import atomic_path, read_json, write_json, write_text
+from monolib.io import atomic_path, read_json, save_torch, write_json, write_text
 from monolib.params import PAPER, Study, load_study
 from monolib.results import cell_metrics
 
@@ -113,8 +113,7 @@ def write_database(out: str | Path, study: Study, cell: dict, model: gcn.GraphEn
         with open(tmp, "wb") as fh:
             np.save(fh, np.asarray(embeddings, np.float32))
     write_text(out / "frames.csv", pd.DataFrame({"frame": frames, "setting": settings}).to_csv(index=False))
-    with atomic_path(out / "encoder.pt") as tmp:
-        torch.save({k: v.detach().cpu() for k, v in model.state_dict().items()}, tmp)
+    save_torch(out / "encoder.pt", {k: v.detach().cpu() for k, v in model.state_dict().items()})
     write_json(out / "meta.json", {
         "study": study.name, "study_file": study.path, "cell": cell["folder"], "method": cell["method"],
         "scenario": cell["scenario"],

@@ -19,7 +19,7 @@ from monolib.progress import tqdm
 
 from monolib import dataset as dataset_mod
 from monolib.graph import NODE_FEATURES, complete_graph, scene_nodes
-from monolib.io import DataFileError, atomic_path, load_cached
+from monolib.io import DataFileError, load_cached, save_torch
 from monolib.params import Study, key_of
 
 log = logging.getLogger(__name__)
@@ -134,8 +134,7 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
                       f"are empty graphs (counted in graph_sizes.md; first: {missing[sc][0]})", flush=True)
     seconds = time.perf_counter() - t0
     for sc in todo:
-        with atomic_path(out[sc]) as tmp:
-            torch.save({"scenario": sc, "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds}, tmp)
+        save_torch(out[sc], {"scenario": sc, "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds})
         n = sum(len(v) for v in built[sc].values())
         log.info("graphs: %s built, %d graphs (%d scenarios in %.1f s)", sc, n, len(todo), seconds)
     return out

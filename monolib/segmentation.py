@@ -363,7 +363,6 @@ def load_model(spec, path) -> nn.Module:
 
 
 def save_model(model: nn.Module, path) -> None:
-    from monolib.io import atomic_path
+    from monolib.io import save_torch
 
-    with atomic_path(path) as tmp:
-        torch.save({"state_dict": model.state_dict()}, tmp)
+    save_torch(path, {"state_dict": model.state_dict()})

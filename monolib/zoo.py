@@ -122,8 +122,7 @@ def export(model, spec, task: str, out: Path, info: dict) -> dict:
     path = out / f"{spec.name}.pt"
     state = {k: (v.detach().cpu().half() if v.is_floating_point() else v.detach().cpu())
              for k, v in model.state_dict().items()}
-    with io.atomic_path(path) as tmp:
-        torch.save({"state_dict": state, "architecture": architecture(spec, task)}, tmp)
+    io.save_torch(path, {"state_dict": state, "architecture": architecture(spec, task)})
     return {"file": path.name, "bytes": path.stat().st_size, "sha256": sha256(path), **info}
 
 

@@ -212,3 +212,16 @@ def test_the_same_seed_gives_the_same_weights_and_sets_deterministic_kernels(stu
 def test_committed_studies_are_deterministic():
     for f in sorted(paths.PARAMS.glob("*.yaml")):
         assert load_study(str(f), check_files=False).deterministic, f.name
+
+
+def test_the_same_weights_saved_twice_are_the_same_bytes(tmp_path):
+    """`io.save_torch` writes through a temporary file, whose name must not reach the file (torch names the archive
+    inside after a path it is given): a cell's model.pt and a shipped zoo file's sha256 depend on the weights alone."""
+    from monolib import io
+
+    state = {"w": torch.arange(6.0).reshape(2, 3)}
+    io.save_torch(tmp_path / "a.pt", state)
+    io.save_torch(tmp_path / "b.pt", state)
+    assert (tmp_path / "a.pt").read_bytes() == (tmp_path / "b.pt").read_bytes()
+    assert torch.equal(torch.load(tmp_path / "a.pt")["w"], state["w"])
+    assert not list(tmp_path.glob(".*.tmp"))

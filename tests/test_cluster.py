@@ -78,7 +78,7 @@ def same_cell(a: Path, b: Path) -> None:
     """Two runs of one cell: the same metrics, rankings, protocol draw and embeddings."""
     ra, rb = json.loads(a.read_text()), json.loads(b.read_text())
     assert ra["metrics"] == rb["metrics"] and ra["best_epoch"] == rb["best_epoch"]
-    for name in ("rankings.csv", "protocol.csv", "history.csv", "embeddings.npy"):
+    for name in ("rankings.csv", "protocol.csv", "history.csv", "embeddings.npy", "model.pt"):
         assert (a.parent / name).read_bytes() == (b.parent / name).read_bytes(), name
 
 
