@@ -45,12 +45,6 @@ def _study_file(base: str, engine: str) -> Path:
     return path
 
 
-def _cells(study) -> list[dict]:
-    from monolib.io import read_json
-
-    return [read_json(f) for f in sorted((study.dir / "cells").glob("*/*/cell.json"))]
-
-
 def _one_run(base: str, engine: str, jobs: int, scheduler: str | None) -> dict:
     from monolib import study as study_mod
 
@@ -61,8 +55,10 @@ def _one_run(base: str, engine: str, jobs: int, scheduler: str | None) -> dict:
     t0 = time.perf_counter()
     grid = study_mod.run_grid(s, jobs=jobs, progress=False, scheduler=scheduler)
     seconds = time.perf_counter() - t0
-    records = {f"{r['method']}/{r['scenario']}__t{paths.threshold_tag(float(r['threshold']))}__s{r['seed']}": r
-               for r in _cells(s) if "same_graphs_as" not in r}
+    from monolib.io import read_json
+
+    records = {c.name: read_json(paths.cell_dir(s.name, c.method, c.scenario, c.threshold, c.seed) / "cell.json")
+               for c in study_mod.grid(s) if c.name in grid["cell_seconds"]}
     per_cell = [{"cell": name, "wall_s": round(wall, 2), "compute_s": round(sum(records[name]["timings"].values()), 2),
                  "train_s": round(records[name]["timings"].get("train_s", 0.0), 2),
                  "epochs_run": records[name].get("epochs_run")} for name, wall in sorted(grid["cell_seconds"].items())]

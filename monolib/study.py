@@ -169,16 +169,16 @@ def _cell_notebook_path(study_name: str, cell_name: str) -> Path:
     return paths.study_dir(study_name) / "notebooks" / "cells" / f"{cell_name.replace('/', '__')}.ipynb"
 
 
-def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int, env: dict[str, str]) -> tuple[str, float]:
+def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int, env: dict[str, str]) -> float:
     """One cell of the grid as a worker runs it (a local process or a Dask worker): `ablation_cell.ipynb` through
     papermill into `output`, in a kernel that inherits `env` (`monolib.cluster.task_environment`: the client's
-    runs folder and device). Returns (cell name, seconds)."""
+    runs folder and device). Returns its wall seconds."""
     t0 = time.perf_counter()
     os.environ.update(env)
     execute(CELL_NOTEBOOK, Path(output), {"study": study_file, "method": cell.method, "scenario": cell.scenario,
                                           "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""},
             timeout)
-    return cell.name, time.perf_counter() - t0
+    return time.perf_counter() - t0
 
 
 def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_process: bool = False,
@@ -227,7 +227,7 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
             bar = tqdm(total=len(run), desc="cells", unit="cell", disable=not progress)
             for fut in as_completed(futures):
                 try:
-                    seconds[futures[fut].name] = fut.result()[1]
+                    seconds[futures[fut].name] = fut.result()
                 except Exception as exc:
                     failed.append((futures[fut].name, exc))
                     log.error("cell %s failed: %s: %s", futures[fut].name, type(exc).__name__, exc)
