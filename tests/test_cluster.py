@@ -95,7 +95,7 @@ def test_the_grid_on_two_dask_workers_gives_the_files_of_the_local_path(smoke_st
 
 
 def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_file, tmp_path):
-    """SIGKILL the worker process that runs a cell once another cell has finished: the scheduler hands the cell
+    """SIGKILL the worker process of a cell that started after another cell finished: the scheduler hands the cell
     to a worker again (the nanny restarts the dead one), the study completes, the finished cells are not run
     again, and the re-run cell has the numbers of an uninterrupted run."""
     from distributed import Client
@@ -105,20 +105,25 @@ def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_fi
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
         with Client(scheduler_file=str(scheduler_file), timeout=60) as client:
-            def running_cell():  # (worker, cell) of a cell whose notebook has started, once another cell is done
+            before: set = set()  # the cells started when the first one finished: they may be about to end
+
+            def running_cell():  # (worker, cell) of a cell started after the first cell finished, still running
                 done = cell_records("smoke_dask_kill")
                 started = {p.stem.removeprefix("gcn__") for p in
                            (paths.study_dir("smoke_dask_kill") / "notebooks" / "cells").glob("*.ipynb")}
-                for name in sorted(started - set(done)) if done else []:
+                if not done:
+                    return None
+                if not before:
+                    before.update(started)
+                for name in sorted(started - before - set(done)):
                     for w, keys in client.processing().items():
                         if any(k.startswith(f"cell gcn/{name} ") for k in keys):
                             return w, name
                 return None
 
-            worker, killed = wait_for(running_cell, 600, "a worker running a cell after a first cell finished")
-            time.sleep(2)  # into the cell: its kernel is computing
+            worker, killed = wait_for(running_cell, 600, "a worker starting a cell after a first cell finished")
             done = {name: f.stat().st_mtime_ns for name, f in cell_records("smoke_dask_kill").items()}
-            assert killed not in done
+            assert killed not in done  # started within the last poll: its kernel is still starting or computing
             pid = client.run(os.getpid, workers=[worker])[worker]
             os.kill(pid, signal.SIGKILL)
         out, _ = proc.communicate(timeout=900)
