@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long smoke zoo test bench bench-grid clean-runs
+.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid clean-runs
 
 install: $(STAMP)
 
@@ -33,17 +33,26 @@ study: install
 ablations: install
 	$(VENV)/bin/monolib study ablations
 
-# the quick study's segmentation trained about three times longer (run `make study` first)
+# the from-scratch segmentation trained five times longer (run `make study` first)
 perception-long: install
 	$(VENV)/bin/monolib perception perception_long
+
+# what ImageNet pretraining buys: quick's perception trained from scratch on quick's data (run `make study` first)
+scratch: install
+	$(VENV)/bin/monolib perception scratch
 
 smoke: install
 	$(VENV)/bin/monolib study smoke
 
-# the model zoo: pretrain the perception networks on their own mini-Hypersim (params/zoo.yaml), measure them on
-# quick's test split, write monolib/data/zoo/<name>.pt + .json (a GPU job: see the README)
+# the model zoo: fine-tune the ImageNet-pretrained perception networks on their own mini-Hypersim (params/zoo.yaml)
+# on the CPU, measure them on quick's test split after every epoch, write monolib/data/zoo/<name>.pt + .json.
+# Resumable per epoch: run it again after a stop. About an hour on 2 cores: `nohup make zoo > zoo.log &`
 zoo: install
 	$(VENV)/bin/monolib zoo zoo --eval quick
+
+# the learning curve that sized make zoo (accuracy against CPU minutes at two sizes): figures/zoo_pilot.md
+zoo-pilot: install
+	$(VENV)/bin/monolib zoo zoo --eval quick --pilot
 
 # tests/ first (they run the smoke study end to end), then every notebook with its smoke defaults (nbval, lax):
 # every cell must run, and each cell marked # NBVAL_CHECK_OUTPUT must print what the committed notebook holds (its

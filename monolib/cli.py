@@ -22,6 +22,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run the cells on the workers of this Dask scheduler (tcp://host:8786, or the file of "
                    "`dask scheduler --scheduler-file`); they must share this project's runs folder")
+    p.add_argument("--cold-kernels", action="store_true",
+                   help="a new notebook kernel per cell (full isolation) instead of one warm kernel per worker "
+                   "(= MONOLIB_KERNELS=cold)")
     p = sub.add_parser("synth", help="render a study's mini-Hypersim in the Hypersim layout")
     p.add_argument("study")
     p.add_argument("--out", required=True, help="output folder")
@@ -32,6 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval", default="quick", help="the study whose test split measures them (default quick)")
     p.add_argument("--out", default=None, help="folder of the weights and manifests (default monolib/data/zoo)")
     p.add_argument("--only", nargs="*", default=None, help="train only these networks")
+    p.add_argument("--pilot", action="store_true", help="measure the learning curve at a few sizes instead "
+                                                        "(figures/zoo_pilot.md); ships nothing")
+    p.add_argument("--figures", action="store_true", help="only rewrite figures/zoo.md and zoo_curve.png from the "
+                                                          "shipped manifests")
     p = sub.add_parser("fidelity", help="compare a study's ground-truth scene graphs with real Hypersim (fidelity.md)")
     p.add_argument("study")
     p = sub.add_parser("index", help="store the embeddings of a study's test frames as a localization database")
@@ -61,6 +68,10 @@ def main(argv: list[str] | None = None) -> int:
             from monolib import study as study_mod
 
             t0 = time.perf_counter()
+            if args.cold_kernels:
+                import os
+
+                os.environ["MONOLIB_KERNELS"] = "cold"
             times = study_mod.run(load_study(args.study), jobs=args.jobs, scheduler=args.scheduler)
             print("stage seconds: " + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in times.items())
                   + f"; total {time.perf_counter() - t0:.0f}")
@@ -78,7 +89,16 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "zoo":
             from monolib import zoo
 
-            done = zoo.run(load_study(args.study), load_study(args.eval), Path(args.out) if args.out else None,
+            # the evaluation study gives its test split only: its own zoo weights need not exist yet
+            evaluation = load_study(args.eval, check_files=False)
+            if args.figures:
+                zoo.write_figures(zoo.shipped_manifests(load_study(args.study), args.out), paths.FIGURES)
+                print(f"written: {paths.FIGURES / 'zoo.md'} and zoo_curve.png")
+                return 0
+            if args.pilot:
+                print(zoo.pilot(load_study(args.study), evaluation, paths.FIGURES, only=args.only).to_string(index=False))
+                return 0
+            done = zoo.run(load_study(args.study), evaluation, Path(args.out) if args.out else None,
                            only=args.only)
             for name, m in done.items():
                 print(f"{name}: {m['file']} {m['bytes'] / 1e6:.1f} MB sha256 {m['sha256'][:12]} "
@@ -115,10 +135,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:
-        from monolib.io import DataFileError
+        from monolib.io import CacheUnreadable, DataFileError
         from monolib.localize import LocalizeError
 
-        if isinstance(exc, (LocalizeError, DataFileError)):
+        if isinstance(exc, (LocalizeError, DataFileError, CacheUnreadable)):
             print(f"error: {exc}", file=sys.stderr)
             return 2
         from monolib.study import NotebookFailed

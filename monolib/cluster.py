@@ -31,13 +31,13 @@ CONNECT_SECONDS = 60  # how long to wait for the scheduler and for a first worke
 
 
 def task_environment() -> dict[str, str]:
-    """What a worker's notebook kernel needs from the client's environment: the runs and figures folders (absolute)
-    and the device type of the cells' keys."""
-    from monolib import paths
+    """What a worker's notebook kernel needs from the client's environment: the runs and figures folders (absolute),
+    the device type of the cells' keys, and whether cells run in warm kernels (`monolib.kernels`)."""
+    from monolib import kernels, paths
     from monolib.device import device
 
     return {"MONOLIB_RUNS": str(paths.RUNS.resolve()), "MONOLIB_FIGURES": str(paths.FIGURES.resolve()),
-            "MONOLIB_DEVICE": device().type}
+            "MONOLIB_DEVICE": device().type, "MONOLIB_KERNELS": "warm" if kernels.warm_enabled() else "cold"}
 
 
 def worker_facts(token: str, study_file: str, device_type: str) -> dict:

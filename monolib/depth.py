@@ -26,6 +26,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from monolib.device import device, seed_everything
+from monolib.params import EFFICIENTNET_BACKBONES
 from monolib.segmentation import (as_images, colour_jitter, fit, normalise, on_device, precision, resize_image,
                                   resize_nearest, to_batch)
 
@@ -144,6 +145,30 @@ class Encoder(nn.Module):
         return [f1, f2, f3, f4]
 
 
+class EfficientEncoder(nn.Module):
+    """An EfficientNet-Lite encoder (timm's ``tf_efficientnet_liteN``, ``features_only``) returning its features at
+    1/4, 1/8, 1/16 and 1/32, the four scales of the LeReS decoder. `pretrained`: the ImageNet file of its package
+    (`monolib.imagenet`). Takes ImageNet-normalised input (`imagenet.Renormalise` converts it)."""
+
+    def __init__(self, backbone: str, pretrained: bool = False):
+        super().__init__()
+        import timm
+
+        from monolib import imagenet
+
+        self.renormalise = imagenet.Renormalise()
+        self.model = timm.create_model(imagenet.timm_name(backbone), pretrained=False, features_only=True,
+                                       out_indices=(1, 2, 3, 4))
+        self.channels = list(self.model.feature_info.channels())
+        if pretrained:
+            imagenet.load_features(self.model, backbone)
+
+    def forward(self, x):
+        return self.model(self.renormalise(x))
+
+
+
+
 class LeReSDepthModel(nn.Module):
     """``encoder_modules`` + ``decoder_modules`` (AdelaiDepth's DepthModel). mode 'log' or 'leres' (see module doc)."""
 
@@ -151,8 +176,13 @@ class LeReSDepthModel(nn.Module):
                  input_size: tuple[int, int] = (192, 256)):
         super().__init__()
         w = decoder_width
-        self.encoder_modules = Encoder(backbone, weights)
-        self.decoder_modules = Decoder(ENCODER_CHANNELS[backbone], (w, w, w, 2 * w), 1)
+        if backbone in EFFICIENTNET_BACKBONES:
+            self.encoder_modules = EfficientEncoder(backbone, pretrained=weights == "imagenet")
+            channels = self.encoder_modules.channels
+        else:
+            self.encoder_modules = Encoder(backbone, weights)
+            channels = ENCODER_CHANNELS[backbone]
+        self.decoder_modules = Decoder(channels, (w, w, w, 2 * w), 1)
         self.mode = mode
         self.input_size = tuple(input_size)
         self.register_buffer("scale", torch.ones(()), persistent=False)  # leres mode: metres per relative unit
@@ -168,7 +198,9 @@ class LeReSDepthModel(nn.Module):
 def build_model(spec) -> LeReSDepthModel:
     """The trainable model for a DepthSpec (offline; pretrained encoder weights only when cached locally)."""
     weights = None
-    if spec.pretrained:
+    if spec.pretrained and spec.backbone in EFFICIENTNET_BACKBONES:
+        weights = "imagenet"  # the ImageNet file of the encoder's package (monolib.imagenet)
+    elif spec.pretrained:
         import torchvision.models as tvm
 
         from monolib.segmentation import cached_weights
@@ -197,23 +229,56 @@ def build_leres(backbone: str, input_size: tuple[int, int] = (448, 448)) -> LeRe
 def load_adelai_checkpoint(model: LeReSDepthModel, path) -> LeReSDepthModel:
     """Load an original AdelaiDepth LeReS checkpoint (``res50.pth`` / ``res101.pth``) strictly.
 
-    The file is a dict whose ``depth_model`` entry is the state dict of LeReS's ``RelDepthModel`` (keys
-    ``[module.]depth_model.encoder_modules.*`` and ``...decoder_modules.*``); the keys under ``depth_model.`` are
-    loaded with ``strict=True`` into `model`, which must be `build_leres(backbone)` (the original architecture:
-    ResNet50 -> ``res50.pth``, ResNeXt101-32x8d -> ``res101.pth``). The shift/focal models are not used.
+    The file is a dict whose ``depth_model`` entry is the state dict of LeReS's ``RelDepthModel``
+    (``LeReS/Minist_Test/lib/multi_depth_model_woauxi.py``: ``RelDepthModel.depth_model = DepthModel``, whose
+    ``encoder_modules`` is ``network_auxi.DepthNet`` holding the ResNet as ``.encoder``). Its keys are therefore
+    ``[module.]depth_model.encoder_modules.encoder.<ResNet keys>`` and ``[module.]depth_model.decoder_modules.*``
+    (406 tensors for ResNet50, 712 for ResNeXt101-32x8d, ``num_batches_tracked`` included). As in AdelaiDepth's
+    ``strip_prefix_if_present``, ``module.`` is stripped only when every key has it. The keys under ``depth_model.``
+    are mapped onto `model` (``encoder_modules.encoder.X`` -> ``encoder_modules.X``, as the project's encoder holds
+    the ResNet's layers directly; the project's own layout ``encoder_modules.X`` is accepted too) and loaded with
+    ``strict=True``; `model` must be `build_leres(backbone)` (ResNet50 -> ``res50.pth``, ResNeXt101-32x8d ->
+    ``res101.pth``). Keys outside ``depth_model.`` count as unexpected (AdelaiDepth loads the entry strictly).
+    Missing ``num_batches_tracked`` buffers (checkpoints from PyTorch < 0.4.1) are tolerated, as PyTorch's own
+    strict load does for them. Any mismatch raises ValueError naming the file with the numbers of missing,
+    unexpected and wrongly shaped keys (and the first few names). The shift/focal models are not used.
     The result predicts relative depth; call `fit_scale` on training frames before using it in metres.
     """
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - any unreadable file is reported as a bad checkpoint
+        raise ValueError(f"{path}: cannot be read as a torch checkpoint: {exc}") from exc
     state = ckpt.get("depth_model", ckpt) if isinstance(ckpt, dict) else ckpt
-    if not isinstance(state, dict):
-        raise ValueError(f"{path}: not an AdelaiDepth checkpoint (expected a dict with 'depth_model')")
-    sub = {}
+    if not isinstance(state, dict) or not state:
+        raise ValueError(f"{path}: not an AdelaiDepth checkpoint (expected a dict with a 'depth_model' state dict)")
+    if all(isinstance(k, str) and k.startswith("module.") for k in state):
+        state = {k[len("module."):]: v for k, v in state.items()}
+    target = model.state_dict()
+    sub, unexpected = {}, []
     for k, v in state.items():
-        k = k[len("module."):] if k.startswith("module.") else k
-        if k.startswith("depth_model."):
-            sub[k[len("depth_model."):]] = v
+        if not (isinstance(k, str) and k.startswith("depth_model.")):
+            unexpected.append(str(k))
+            continue
+        name = k[len("depth_model."):]
+        if name.startswith("encoder_modules.encoder.") and name not in target:
+            name = "encoder_modules." + name[len("encoder_modules.encoder."):]
+        if name in sub or name not in target:
+            unexpected.append(k)
+            continue
+        sub[name] = v
     if not sub:
         raise ValueError(f"{path}: no keys under 'depth_model.' (found e.g. {list(state)[:3]})")
+    missing = [k for k in target if k not in sub and not k.endswith(".num_batches_tracked")]
+    wrong = [f"{k} {tuple(v.shape) if isinstance(v, torch.Tensor) else type(v).__name__} vs {tuple(target[k].shape)}"
+             for k, v in sub.items() if not isinstance(v, torch.Tensor) or v.shape != target[k].shape]
+
+    def few(names, what):
+        return f"{len(names)} {what}" + (f" (e.g. {', '.join(names[:4])})" if names else "")
+
+    if missing or unexpected or wrong:
+        raise ValueError(f"{path}: does not match the LeReS architecture built here: {few(missing, 'missing keys')}; "
+                         f"{few(unexpected, 'unexpected keys')}; {few(wrong, 'keys of the wrong shape')} "
+                         f"({len(state)} keys in the file, {len(target)} in the model)")
     try:
         model.load_state_dict(sub, strict=True)
     except RuntimeError as exc:
@@ -350,8 +415,9 @@ def evaluate_cached(model, x: torch.Tensor, d: torch.Tensor, batch_size: int = 1
 
 def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
           max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None,
-          deterministic: bool = True):
-    """Train with `depth_loss` (`segmentation.fit`); keep the epoch with the best validation delta<1.25.
+          deterministic: bool = True, resume=None, on_epoch: Optional[Callable] = None):
+    """Train with `depth_loss` (`segmentation.fit`, which `resume` and `on_epoch` are passed to); keep the epoch
+    with the best validation delta<1.25.
     Returns (model, history)."""
     gen = seed_everything(seed, deterministic)
     model = build_model(spec).to(device())
@@ -375,7 +441,7 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
         return {f"val_{k}": v for k, v in sc.items() if k != "frames"}, sc["delta1"]
 
     model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history, progress,
-                max_steps, step_callback)
+                max_steps, step_callback, resume, on_epoch)
     return model, history
 
 

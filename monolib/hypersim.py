@@ -214,7 +214,12 @@ class HypersimDataset:
             raise DataFileError(f"{self.root}: Hypersim root folder not found")
         self.metadata_dir = Path(metadata_dir) if metadata_dir else self.root
         self._frames: dict[tuple[str, str], list[int]] = {}
-        for setting in sorted(p.name for p in self.root.iterdir() if p.is_dir() and SETTING_RE.match(p.name)):
+        folders = sorted(p.name for p in self.root.iterdir() if p.is_dir())
+        odd = [n for n in folders if n.startswith("ai_") and not SETTING_RE.match(n)]
+        if odd:  # a setting folder must be ai_VVV_NNN; say which were left out rather than drop them unseen
+            warnings.warn(f"{self.root}: {len(odd)} folders that are not Hypersim setting names (ai_VVV_NNN) are "
+                          f"ignored: {', '.join(odd[:4])}{' ...' if len(odd) > 4 else ''}")
+        for setting in [n for n in folders if SETTING_RE.match(n)]:
             images = self.root / setting / "images"
             if not images.is_dir():
                 continue

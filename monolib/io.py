@@ -72,17 +72,55 @@ def write_h5(path: str | os.PathLike, array: np.ndarray, compression: int | None
                 f.create_dataset("dataset", data=array, compression="gzip", compression_opts=compression)
 
 
+def sha256(path: str | os.PathLike) -> str:
+    """The sha256 of a file's bytes (hex), read in 1 MB blocks."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+class CacheUnreadable(RuntimeError):
+    """A cached file that could not be read for a reason outside the file (permissions, I/O, the device): it is left
+    where it is. The message names the file and the cause."""
+
+
+def _outside_the_file(exc: BaseException) -> bool:
+    """True for a failure that says nothing about the file's content: no right to read it, an I/O or network file
+    system error, memory, or the device the reader moves a model to (CUDA out of memory, no CUDA here)."""
+    import errno
+
+    if isinstance(exc, (PermissionError, MemoryError)):
+        return True
+    if isinstance(exc, OSError) and exc.errno in {errno.EACCES, errno.EPERM, errno.EIO, errno.ESTALE, errno.ENOMEM,
+                                                  errno.EBUSY, errno.ENOSPC, errno.ETIMEDOUT}:
+        return True
+    text = f"{type(exc).__name__} {exc}"
+    return any(s in text for s in ("OutOfMemory", "out of memory", "CUDA", "cuda", "device-side"))
+
+
 def load_cached(path: str | os.PathLike, read, what: str = "cached file") -> Any:
     """The one reader of a cached artifact (a model, a graphs file, a cell's record): ``read(path)``, or None when
-    the file is absent. A file that cannot be read (cut short by a full disk or a killed copy, not the expected
-    format) is removed with a warning naming it, and None is returned: the caller recomputes it. `read` should
-    raise on content it does not expect (a missing key), not only on bytes it cannot parse."""
+    the file is absent. A file whose content cannot be read (cut short by a full disk or a killed copy, not the
+    expected format, a missing key) is removed with a warning naming it, and None is returned: the caller recomputes
+    it. A failure from outside the file (no permission to read it, an I/O or stale network-file-system error, the
+    device out of memory) removes nothing: `CacheUnreadable` names the file and the cause. `read` should raise on
+    content it does not expect (a missing key), not only on bytes it cannot parse."""
     path = Path(path)
     if not path.is_file():
         return None
+    if not os.access(path, os.R_OK):
+        raise CacheUnreadable(f"{path}: {what}: no permission to read it (left in place; fix its permissions or "
+                              f"point the run at a runs folder of your own)")
     try:
         return read(path)
     except Exception as exc:  # torch/pickle/json/h5py each raise their own types on truncated files
+        if _outside_the_file(exc):
+            raise CacheUnreadable(f"{path}: {what} could not be read ({type(exc).__name__}: {str(exc)[:200]}); "
+                                  f"the file is left in place") from exc
         log.warning("%s: unreadable %s (%s: %s); removed, it will be recomputed", path, what, type(exc).__name__,
                     str(exc)[:200])
         path.unlink(missing_ok=True)

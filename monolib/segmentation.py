@@ -21,6 +21,7 @@ from torch import nn
 
 from monolib.device import device, seed_everything
 from monolib.labels import NUM_CLASSES
+from monolib.params import EFFICIENTNET_BACKBONES
 
 log = logging.getLogger(__name__)
 
@@ -109,13 +110,20 @@ def colour_jitter(x: torch.Tensor, gen: torch.Generator, strength: float = 0.3) 
 
 def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Optional[Callable],
         gen: torch.Generator, history: dict, progress: bool = True, max_steps: Optional[int] = None,
-        step_callback: Optional[Callable[[int, float], None]] = None) -> nn.Module:
+        step_callback: Optional[Callable[[int, float], None]] = None, resume: Optional[Path] = None,
+        on_epoch: Optional[Callable[[nn.Module, dict], None]] = None) -> nn.Module:
     """The training loop of both perception networks: AdamW + one-cycle schedule over `spec.epochs` epochs of
     shuffled batches, validation after each epoch, and the weights of the best epoch kept.
 
     `batch_loss(model, idx)` returns the loss of the training frames `idx`; `validate(model)` returns
     (record entries, selection metric; higher is better, NaN: fall back to minus the training loss). Appends one
     record per epoch to ``history["epochs"]`` and sets ``best_epoch`` and ``train_seconds``.
+
+    `resume`: a file written atomically after every epoch (weights, optimiser, schedule, every random state, the
+    history so far, the best epoch's weights); when it exists the run goes on after its last epoch and ends with
+    the same weights as an uninterrupted run. `on_epoch(model, record)` is called after validation (in eval mode)
+    and may add entries to the record (the zoo's learning curve on another study's test split); its time is not
+    counted in ``train_seconds``. Each record holds ``train_seconds``, the training time up to its epoch's end.
     """
     from monolib.progress import tqdm
 
@@ -123,9 +131,21 @@ def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Op
     steps_per_epoch = max(1, int(np.ceil(n_train / spec.batch_size)))
     total = spec.epochs * steps_per_epoch
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.15)
-    best, best_state, step = -np.inf, None, 0
+    best, best_state, step, start, spent = -np.inf, None, 0, 0, 0.0
+    if resume is not None and Path(resume).is_file():
+        state = torch.load(resume, map_location="cpu", weights_only=False)
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        sched.load_state_dict(state["scheduler"])
+        gen.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])
+        np.random.set_state(state["numpy_rng"])
+        best, best_state, step, start, spent = state["best"], state["best_state"], state["step"], state["epoch"], state["spent"]
+        history.update(state["history"])
+        log.info("%s: resumed after epoch %d of %d (%s)", spec.name, start, spec.epochs, resume)
+        print(f"{spec.name}: resumed after epoch {start} of {spec.epochs} ({resume})", flush=True)
     t_train = time.perf_counter()
-    for epoch in range(spec.epochs):
+    for epoch in range(start, spec.epochs):
         te = time.perf_counter()
         model.train()
         order = torch.randperm(n_train, generator=gen)
@@ -148,7 +168,10 @@ def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Op
                 step_callback(step, losses[-1])
             if max_steps and step >= max_steps:
                 break
-        rec = {"epoch": epoch + 1, "train_loss": float(np.mean(losses)) if losses else float("nan")}
+        if not losses:  # never cache an untrained network as trained
+            raise ValueError(f"{spec.name}: epoch {epoch + 1} ran no training step ({n_train} training frames, "
+                             f"batch_size {spec.batch_size}): a step needs a batch of at least 2 frames")
+        rec = {"epoch": epoch + 1, "train_loss": float(np.mean(losses))}
         metric = float("nan")
         if validate is not None:
             entries, metric = validate(model)
@@ -156,13 +179,28 @@ def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Op
         if not np.isfinite(metric):
             metric = -rec["train_loss"]
         rec["seconds"] = time.perf_counter() - te
-        history["epochs"].append(rec)
-        log.info("%s epoch %d: %s", spec.name, epoch + 1, rec)
+        rec["train_seconds"] = spent + time.perf_counter() - t_train
         if metric > best or best_state is None:
             best, best_state, history["best_epoch"] = metric, copy.deepcopy(model.state_dict()), epoch + 1
+        if on_epoch is not None:
+            t_cb = time.perf_counter()
+            model.eval()
+            on_epoch(model, rec)
+            t_train += time.perf_counter() - t_cb  # the callback's time is not training time
+        history["epochs"].append(rec)
+        log.info("%s epoch %d: %s", spec.name, epoch + 1, rec)
+        if resume is not None:
+            from monolib.io import save_torch
+
+            save_torch(resume, {"model": model.state_dict(), "optimizer": opt.state_dict(),
+                                "scheduler": sched.state_dict(), "generator": gen.get_state(),
+                                "torch_rng": torch.get_rng_state(), "numpy_rng": np.random.get_state(),
+                                "best": best, "best_state": best_state, "step": step, "epoch": epoch + 1,
+                                "spent": spent + time.perf_counter() - t_train,
+                                "history": {k: v for k, v in history.items()}})
         if max_steps and step >= max_steps:
             break
-    history["train_seconds"] = time.perf_counter() - t_train
+    history["train_seconds"] = spent + time.perf_counter() - t_train
     model.load_state_dict(best_state)
     model.eval()
     return model
@@ -191,8 +229,38 @@ def cached_weights(weights) -> Path:
     return path
 
 
+class EfficientDeepLabV3(nn.Module):
+    """DeepLabV3 (the paper's ASPP head, segmentation-models-pytorch) on an EfficientNet-Lite encoder (timm's
+    ``tf_efficientnet_liteN``), output stride 16, 40 classes. `pretrained`: the encoder starts from the ImageNet
+    checkpoint its package ships (`monolib.imagenet`). Takes ImageNet-normalised input like torchvision's DeepLabV3
+    (`imagenet.Renormalise` converts it) and returns ``{"out": logits}`` as torchvision's does."""
+
+    def __init__(self, backbone: str, pretrained: bool):
+        super().__init__()
+        import segmentation_models_pytorch as smp
+
+        from monolib import imagenet
+
+        self.renormalise = imagenet.Renormalise()
+        self.net = smp.DeepLabV3(encoder_name=f"tu-{imagenet.timm_name(backbone)}", encoder_weights=None,
+                                 classes=NUM_CLASSES, encoder_output_stride=OUTPUT_STRIDE)
+        if pretrained:
+            imagenet.load_features(self.net.encoder.model, backbone)
+
+    def forward(self, x):
+        return {"out": self.net(self.renormalise(x))}
+
+
+OUTPUT_STRIDE = 16  # of the EfficientNet DeepLabV3: input sides must be multiples of 32 (smp's check)
+
+
 def build_model(spec) -> nn.Module:
-    """DeepLabV3 with the spec's backbone, 40 classes, no auxiliary classifier; offline unless `pretrained`."""
+    """DeepLabV3 with the spec's backbone, 40 classes, no auxiliary classifier; offline unless `pretrained`
+    (torchvision backbones: weights in torch hub's cache; EfficientNet-Lite: the ImageNet file of its package)."""
+    if spec.backbone in EFFICIENTNET_BACKBONES:
+        model = EfficientDeepLabV3(spec.backbone, spec.pretrained)
+        model.input_size = (spec.train_height, spec.train_width)
+        return model
     import torchvision.models.segmentation as seg
 
     builder_name, full_enum, _ = _BUILDERS[spec.backbone]
@@ -320,8 +388,9 @@ def evaluate_cached(model: nn.Module, x: torch.Tensor, y: torch.Tensor, batch_si
 
 def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
           max_steps: Optional[int] = None, step_callback: Optional[Callable[[int, float], None]] = None,
-          deterministic: bool = True):
-    """Train DeepLabV3 with cross-entropy (`fit`); keep the epoch with the best validation mIoU.
+          deterministic: bool = True, resume: Optional[Path] = None, on_epoch: Optional[Callable] = None):
+    """Train DeepLabV3 with cross-entropy (`fit`, which `resume` and `on_epoch` are passed to); keep the epoch
+    with the best validation mIoU.
 
     Returns (model, history) where history = {"epochs": [{"epoch", "train_loss", "val_pixel_accuracy",
     "val_miou", "seconds"}], "best_epoch", "train_seconds", ...}. `max_steps` stops early (tests).
@@ -345,7 +414,7 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
         return {"val_pixel_accuracy": sc["pixel_accuracy"], "val_miou": sc["miou"]}, sc["miou"]
 
     model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history, progress,
-                max_steps, step_callback)
+                max_steps, step_callback, resume, on_epoch)
     return model, history
 
 

@@ -141,25 +141,39 @@ def failure_message(notebook: Path, output: Path, exc) -> str:
             f"  executed notebook: {output}")
 
 
-def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retries: int = 1) -> Path:
-    """Run a notebook with papermill in its own kernel (explicit kernel, cwd and timeout, `kernel_config`); one
-    retry for the kernel-port collisions that parallel kernels can hit. A failing notebook cell raises
-    `NotebookFailed` naming the cell and the executed notebook (papermill writes it, traceback included)."""
+def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retries: int = 1,
+            warm: bool = False, env: dict[str, str] | None = None) -> Path:
+    """Run a notebook with papermill (explicit kernel, cwd and timeout, `kernel_config`): in its own kernel, or with
+    `warm` in this worker's warm kernel (`monolib.kernels`, which inherits `env`). A failing notebook cell raises
+    `NotebookFailed` naming the cell and the executed notebook (papermill writes it, traceback included). Any other
+    failure (a kernel that did not start, died or timed out) is retried `retries` times, in a fresh kernel; a warm
+    kernel is discarded after any failure, so no notebook inherits a broken one."""
     import papermill
+
+    from monolib import kernels
 
     output.parent.mkdir(parents=True, exist_ok=True)
     for attempt in range(retries + 1):
         try:
-            papermill.execute_notebook(str(notebook), str(output), parameters=parameters, kernel_name="python3",
-                                       cwd=str(notebook.parent), execution_timeout=timeout, progress_bar=False,
-                                       log_output=False, config=kernel_config())
+            if warm:
+                kernels.execute(str(notebook), str(output), parameters, timeout, str(notebook.parent), env or {},
+                                kernel_config())
+            else:
+                papermill.execute_notebook(str(notebook), str(output), parameters=parameters, kernel_name="python3",
+                                           cwd=str(notebook.parent), execution_timeout=timeout, progress_bar=False,
+                                           log_output=False, config=kernel_config())
             return output
         except papermill.PapermillExecutionError as exc:
+            if warm:
+                kernels.discard()
             raise NotebookFailed(failure_message(notebook, output, exc)) from None
-        except Exception as exc:  # kernel start-up failures (ZMQError, timeouts)
+        except Exception as exc:  # the kernel failed: start-up (ZMQError, timeouts), death, a cell's timeout
+            if warm:
+                kernels.discard()
             if attempt == retries:
                 raise
-            log.warning("%s: kernel failed to start (%s); retrying", notebook.name, exc)
+            log.warning("%s: the kernel failed (%s: %s); running it again in a fresh kernel", notebook.name,
+                        type(exc).__name__, exc)
             time.sleep(2)
     return output
 
@@ -172,12 +186,15 @@ def _cell_notebook_path(study_name: str, cell_name: str) -> Path:
 def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int, env: dict[str, str]) -> float:
     """One cell of the grid as a worker runs it (a local process or a Dask worker): `ablation_cell.ipynb` through
     papermill into `output`, in a kernel that inherits `env` (`monolib.cluster.task_environment`: the client's
-    runs folder and device). Returns its wall seconds."""
+    runs folder and device): the worker's warm kernel (`monolib.kernels`) unless ``MONOLIB_KERNELS=cold``.
+    Returns its wall seconds."""
+    from monolib import kernels
+
     t0 = time.perf_counter()
     os.environ.update(env)
     execute(CELL_NOTEBOOK, Path(output), {"study": study_file, "method": cell.method, "scenario": cell.scenario,
                                           "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""},
-            timeout)
+            timeout, warm=kernels.warm_enabled(), env=env)
     return time.perf_counter() - t0
 
 

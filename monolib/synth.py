@@ -40,7 +40,7 @@ from monolib.hypersim import Camera, tonemap
 from monolib.io import atomic_path, write_h5, write_json, write_text
 from monolib.labels import ID
 
-VOLUME0 = 900
+VOLUME0 = 900  # families are volumes ai_900, ai_901, ... wrapping to ai_000 after ai_999 (3 digits, as in Hypersim)
 FORMAT_VERSION = 4  # bump when the generator changes: finished settings with another version are re-rendered
 FOV_X = math.pi / 3
 H5_COMPRESSION = 4  # gzip level (Hypersim uses 9; 4 halves the write time at ~1% larger files)
@@ -1377,6 +1377,9 @@ def plan(study) -> list[dict]:
             fam += 1
         settings.append({"split": "train", "family": fam, "member": k % fs, "frames": int(ds.train_frames_per_setting)})
     total = len(settings)
+    if fam + 1 > 1000:  # Hypersim's names hold 3 digits of volume (ai_VVV_NNN): one volume per family
+        raise ValueError(f"{study.path or study.name}: dataset: {fam + 1} families of settings, the Hypersim layout "
+                         f"names at most 1000 (ai_000 to ai_999); lower train_settings or raise family_size")
     rng = np.random.default_rng([study.seed, 2718])
     n_fam = fam + 1
     room_order = list(rng.permutation(len(ROOM_TYPES)))
@@ -1391,7 +1394,7 @@ def plan(study) -> list[dict]:
     tilt_set = set(np.round(np.linspace(0, total, n_tilt, endpoint=False)).astype(int).tolist()) if n_tilt else set()
     for i, s in enumerate(settings):
         s["index"] = i
-        s["name"] = f"ai_{VOLUME0 + s['family']:03d}_{s['member'] + 1:03d}"
+        s["name"] = f"ai_{(VOLUME0 + s['family']) % 1000:03d}_{s['member'] + 1:03d}"
         s["room_type"] = fam_room[s["family"]]
         s["scene_type"] = SCENE_TYPE_LABEL[s["room_type"]]
         s["dim"] = i in dim_set

@@ -20,7 +20,7 @@ from monolib import paths
 # The modules whose code decides each stage's output (the stage's own module and the ones it computes with).
 STAGE_MODULES = {
     "dataset": ["synth", "hypersim", "labels"],
-    "perception": ["perception", "segmentation", "depth", "zoo", "dataset", "retrieval", "hypersim", "labels"],
+    "perception": ["perception", "segmentation", "depth", "imagenet", "zoo", "dataset", "retrieval", "hypersim", "labels"],
     "graphs": ["scenegraphs", "graph", "dataset", "retrieval", "hypersim", "published", "methods", "labels"],
     "cells": ["cell", "gcn", "baselines", "retrieval", "methods", "graph", "dataset", "hypersim", "labels"],
 }

@@ -130,6 +130,48 @@ def test_truncated_weights_are_removed_and_reported(tmp_path, caplog):
     assert "weights of deeplab" in caplog.text and not path.exists()
 
 
+@pytest.mark.parametrize("failure", [
+    PermissionError(13, "Permission denied"),
+    OSError(5, "Input/output error"),
+    OSError(116, "Stale file handle"),
+    RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB"),
+    RuntimeError("Attempting to deserialize object on a CUDA device but torch.cuda.is_available() is False"),
+])
+def test_a_failure_outside_the_file_removes_nothing(tmp_path, failure):
+    """Valid weights that cannot be read here (no permission, an I/O error, a stale network handle, the device out of
+    memory): one clear error naming the file, and the file is still there (issue 19: `monolib localize` on a
+    model someone else owns removed it)."""
+    from monolib import segmentation as seg
+
+    spec = load_study("smoke").perception.segmentation
+    path = tmp_path / "model.pt"
+    seg.save_model(seg.build_model(spec), path)
+    before = path.read_bytes()
+
+    def read(p):
+        seg.load_model(spec, p)  # the real reader runs, then the failure of the environment
+        raise failure
+
+    with pytest.raises(io.CacheUnreadable, match=str(path)):
+        io.load_cached(path, read, "weights of deeplab")
+    assert path.read_bytes() == before
+
+
+def test_a_file_without_read_permission_is_an_error_and_is_kept(tmp_path, monkeypatch):
+    """`chmod 000` as a user without the right to read it: root reads anyway, so the permission check is made to
+    answer as it would for that user."""
+    path = tmp_path / "cell.json"
+    path.write_text('{"metrics": {}, "method": "gcn"}')
+    path.chmod(0)
+    monkeypatch.setattr(io.os, "access", lambda p, mode: False)
+    try:
+        with pytest.raises(io.CacheUnreadable, match="no permission to read it"):
+            io.load_cached(path, io.read_json_dict, "cell record")
+        assert path.exists()
+    finally:
+        path.chmod(0o644)
+
+
 # ---- caches know their code ------------------------------------------------------------------------------------
 
 def test_source_version_ignores_comments_and_docstrings_but_not_code():

@@ -27,6 +27,16 @@ def test_index_lists_settings_scenes_frames_without_opening_images(tilt_root):
         ds.frame("ai_037_002", "cam_00", 1).semantic
 
 
+def test_folders_that_are_not_setting_names_are_named_in_a_warning(tilt_root):
+    """A folder like ai_1000_001 (4 digits of volume) is not a Hypersim setting: it is left out, and said to be."""
+    import shutil
+
+    shutil.copytree(tilt_root / "ai_037_002", tilt_root / "ai_1037_002")
+    with pytest.warns(UserWarning, match=r"1 folders that are not Hypersim setting names.*ai_1037_002"):
+        ds = HypersimDataset(tilt_root)
+    assert ds.settings() == ["ai_037_002"]
+
+
 def test_tilt_shift_planar_depth_of_a_wall_is_its_distance(tilt_root):
     ds = HypersimDataset(tilt_root)
     f = ds.frame("ai_037_002", "cam_00", 0)

