@@ -351,27 +351,21 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad("protocol.recall_k", f"k must be at least 1, got {k}")
     if not study.thresholds:
         bad("thresholds", "expected at least one threshold")
-    for t in study.thresholds:
-        if not t >= 0:
-            bad("thresholds", f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
-    for where, ts in [(f"scenarios.{n}.thresholds", sc.thresholds) for n, sc in study.scenarios.items()] + \
-                     [(f"variants.{n}.thresholds", v.thresholds) for n, v in study.variants.items()]:
-        for t in ts or []:
-            if not t >= 0:
-                bad(where, f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
-    if not study.seeds:
-        bad("seeds", "expected at least one seed")
-    if len(set(study.seeds)) != len(study.seeds):
-        bad("seeds", f"each seed once, got {study.seeds} (two cells of one seed would share a folder)")
     for where, ts in [("thresholds", study.thresholds)] + \
             [(f"scenarios.{n}.thresholds", sc.thresholds) for n, sc in study.scenarios.items()] + \
             [(f"variants.{n}.thresholds", v.thresholds) for n, v in study.variants.items()]:
         tags: dict[str, float] = {}
         for t in ts or []:
+            if not t >= 0:
+                bad(where, f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
             tag = paths.threshold_tag(t)
             if tag in tags:
                 bad(where, f"{tags[tag]} and {t} name the same cell folder (t{tag}): give each threshold once")
             tags[tag] = t
+    if not study.seeds:
+        bad("seeds", "expected at least one seed")
+    if len(set(study.seeds)) != len(study.seeds):
+        bad("seeds", f"each seed once, got {study.seeds} (two cells of one seed would share a folder)")
     for key in ("threads", "jobs", "cell_timeout"):
         if getattr(study, key) < 1:
             bad(key, f"expected at least 1, got {getattr(study, key)}")
