@@ -192,3 +192,52 @@ def test_batch_hard_mining_trains_differently():
     hard = train(graphs[:18], graphs[18:], dataclasses.replace(spec, mining="batch_hard"), seed=0, threads=1)
     assert [h["train_loss"] for h in hard.history] != pytest.approx([h["train_loss"] for h in random.history])
     assert not torch.allclose(embed(hard.model, graphs), embed(random.model, graphs))
+
+
+def test_a_pool_batch_holds_the_tensors_of_batch_from_data_list():
+    """`GraphPool.batch` against PyG's own collation, bit for bit: repeats, reversed order, empty graphs and
+    graphs without edges (threshold 0) among them."""
+    from torch_geometric.data import Batch
+
+    from monolib.gcn import GraphPool
+
+    empty = at_threshold(complete_graph(np.zeros((0, 4)), np.zeros((0, 3)), "a", "a/0"), math.inf)
+    x, pos = np.column_stack([[1, 2, 5], np.full((3, 3), 0.5)]).astype(np.float32), np.eye(3, dtype=np.float32)
+    no_edges = at_threshold(complete_graph(x, pos, "c", "c/0"), 0.0)
+    assert no_edges.edge_index.shape[1] == 0 and no_edges.num_nodes == 3
+    graphs = toy_graphs(3, 3) + [empty, no_edges]
+    pool = GraphPool(graphs)
+    for idx in ([0, 1, 2], [10, 9, 9, 0, 10, 4], list(range(len(graphs)))[::-1], [9]):
+        got, want = pool.batch(idx), Batch.from_data_list([graphs[i] for i in idx])
+        assert torch.equal(got.x, want.x) and torch.equal(got.edge_index, want.edge_index), idx
+        assert torch.equal(got.edge_attr, want.edge_attr) and torch.equal(got.batch, want.batch), idx
+        assert got.num_graphs == want.num_graphs == len(idx)
+    with pytest.raises(ValueError, match="at least one graph"):
+        GraphPool([])
+
+
+@pytest.mark.parametrize("edge_weight", ["none", "inverse"])
+def test_the_sparse_adjacency_gives_what_gcnconv_computes_from_the_edge_list(edge_weight):
+    """The encoder's layers (one normalised adjacency per batch, sparse products) against PyG's GCNConv with its
+    own normalisation on the edge list, with the same weights: the same embeddings up to float rounding."""
+    from torch_geometric.data import Batch
+    from torch_geometric.nn import GCNConv
+
+    spec = GCNSpec(edge_weight=edge_weight)
+    model = GraphEncoder(spec).eval()
+    batch = Batch.from_data_list(toy_graphs(3, 2))
+    keep = batch.edge_index[0] < batch.edge_index[1]  # one direction only: a transposed adjacency would show
+    batch.edge_index, batch.edge_attr = batch.edge_index[:, keep], batch.edge_attr[keep]
+    with torch.no_grad():
+        got = model(batch)
+        h = model.features(batch.x)
+        w = 1.0 / (1.0 + batch.edge_attr[:, 0]) if edge_weight == "inverse" else None
+        for i, conv in enumerate(model.convs):
+            reference = GCNConv(conv.in_channels, conv.out_channels)  # normalize=True: PyG's own path
+            reference.load_state_dict(conv.state_dict())
+            h = reference(h, batch.edge_index, w)
+            if i < len(model.convs) - 1 or model.lin is not None:
+                h = h.relu()
+        from torch_geometric.nn import global_max_pool
+        want = global_max_pool(model.lin(h), batch.batch)
+    assert torch.allclose(got, want, atol=1e-5), (got - want).abs().max()
