@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import shutil
 import time
 from pathlib import Path
@@ -35,25 +36,90 @@ def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed
 
 
 def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: int) -> str:
-    """Cache key of a cell: its inputs' key (the scenario's graphs, or the dataset for an image method), the
-    method's settings, threshold, seed, protocol, device, deterministic mode and the cells' code version."""
+    """Cache key of a cell: its inputs' key (the scenario's graphs, or the dataset for an image method), what it
+    computes (a graph method's encoder settings, whatever its name; an image method's name), threshold, seed, the
+    protocol's draw and the depth of its rankings (not the k of the metrics: any k up to that depth is recomputed
+    from the rankings, `refresh_metrics`), the torch threads, device, deterministic mode, and the version of the
+    cells' code and libraries."""
     from monolib import dataset
     from monolib.device import device
     from monolib.params import key_of
-    from monolib.versions import code_version
+    from monolib.versions import code_version, library_versions
 
     graph_method = methods.kind(method, study) == "graph"
     inputs = scenegraphs.scenario_key(study, scenario) if graph_method else dataset.dataset_key(study)
-    return key_of({"inputs": inputs, "method": method, "encoder": dataclasses.asdict(study.gcn_spec(method)),
+    pr = study.protocol
+    return key_of({"inputs": inputs, "method": None if graph_method else method,
+                   "encoder": dataclasses.asdict(study.gcn_spec(method)),  # (an image encoder trains on its schedule)
                    "threshold": paths.threshold_json(threshold) if graph_method else None, "seed": int(seed),
-                   "protocol": study.protocol, "val": study.gcn.val_settings, "device": device().type,
-                   "deterministic": study.deterministic, "code": code_version("cells")})
+                   "protocol": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
+                                "frames": pr.frames, "queries": pr.queries, "positives": pr.positives,
+                                "ranked": retrieval.ranking_depth(pr)},
+                   "val": study.gcn.val_settings, "threads": study.threads, "device": device().type,
+                   "deterministic": study.deterministic, "code": code_version("cells"),
+                   "libraries": library_versions("cells")})
+
+
+def refresh_metrics(folder: Path, study: Study) -> dict:
+    """The record of a complete cell with exactly the metrics the study reports: recall@k and precision@k of k
+    values the cell was not made with are computed from its rankings (the top `retrieval.ranking_depth`, part of
+    its key), and the record rewritten; a change of the reported k trains nothing."""
+    from monolib import results  # the one definition of the metrics from rankings (presentation: no training)
+
+    record = read_json(Path(folder) / "cell.json")
+    pr = study.protocol
+    want = results.metric_columns(pr.recall_k, pr.precision_k)
+    have = results.cell_metrics(record)
+    if all(set(m) == set(want) for m in have.values()):
+        return record
+    rankings = results.split_protocols(pd.read_csv(Path(folder) / "rankings.csv"))
+    record["metrics"] = {name: results.recompute_metrics(rankings[name], pr.recall_k, pr.precision_k)
+                         for name in have}
+    write_json(Path(folder) / "cell.json", record)
+    log.info("cell %s: metrics at k %s recomputed from its rankings", folder, want)
+    return record
 
 
 def read_record(folder: Path) -> Optional[dict]:
     """A cell's `cell.json` through the one cache loader (`monolib.io.load_cached`): None when absent or unreadable
     (an unreadable one is removed with a warning, so the cell runs again)."""
     return load_cached(Path(folder) / "cell.json", lambda p: read_json_dict(p, ("metrics", "method")), "cell record")
+
+
+def aside(folder: Path, key: str) -> Path:
+    """Where the cell of `key` waits while a cell of another key holds its folder:
+    ``cells/.aside/<method>/<name>@<key>/`` (out of the way of every reader of ``cells/<method>/<name>/``)."""
+    folder = Path(folder)
+    return folder.parent.parent / ".aside" / folder.parent.name / f"{folder.name}@{key}"
+
+
+def claim(folder: Path, key: str) -> bool:
+    """Make `folder` the cell of `key` without losing the cell of another key that holds it: another study file of
+    the same name (other GCN settings), the same study on another device or with other code. That cell is moved
+    aside (`aside`: nothing it wrote is deleted), and a cell of `key` kept aside earlier moves back.
+    True when `folder` now holds the complete cell of `key`; otherwise `folder` is absent or empty, ready for it.
+    Files of no complete cell (a killed run's) are removed. The study's lock (`monolib.locks`) keeps two runs of
+    one study from claiming at once."""
+    folder = Path(folder)
+    record = read_record(folder)
+    if record is not None and record.get("key") == key:
+        return True
+    if record is not None and record.get("key"):
+        kept = aside(folder, str(record["key"]))
+        if kept.exists():  # an older copy of that same key's cell: the same inputs, settings and code
+            shutil.rmtree(kept)
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(folder, kept)
+        log.info("cell %s: a cell of key %s kept aside in %s", folder, record["key"], kept.name)
+    elif folder.exists():
+        shutil.rmtree(folder)
+    mine = aside(folder, key)
+    if mine.is_dir() and is_complete(mine, key):
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(mine, folder)
+        log.info("cell %s: its cell of key %s moved back from %s", folder, key, mine.name)
+        return True
+    return False
 
 
 def is_complete(folder: Path, key: Optional[str] = None) -> bool:
@@ -82,11 +148,11 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         raise StudyError(f"threshold {threshold}: expected 0 (no edges), a distance in metres > 0, or inf")
     folder = cell_folder(study, method, scenario, threshold, seed, out_dir)
     key = cell_key(study, method, scenario, threshold, seed)
-    if is_complete(folder, key) and not force:
+    if not force and (claim(folder, key) if out_dir is None else is_complete(folder, key)):
         log.info("cell %s already complete", folder)
-        return read_json(folder / "cell.json")
+        return refresh_metrics(folder, study)
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "cell.json").unlink(missing_ok=True)  # a record of other inputs or code: gone before new files land
+    (folder / "cell.json").unlink(missing_ok=True)  # (an `out_dir` of the caller's, or `force`): written anew
     torch.set_num_threads(study.threads)
     timings: dict[str, float] = {}
     history = None

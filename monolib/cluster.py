@@ -32,24 +32,87 @@ CONNECT_SECONDS = 60  # how long to wait for the scheduler and for a first worke
 
 def task_environment() -> dict[str, str]:
     """What a worker's notebook kernel needs from the client's environment: the runs and figures folders (absolute),
-    the device type of the cells' keys, and whether cells run in warm kernels (`monolib.kernels`)."""
+    the device type of the cells' keys, whether cells run in warm kernels (`monolib.kernels`), and the study locks
+    the client holds for them (`monolib.locks`)."""
     from monolib import kernels, paths
     from monolib.device import device
 
+    from monolib import locks
+
     return {"MONOLIB_RUNS": str(paths.RUNS.resolve()), "MONOLIB_FIGURES": str(paths.FIGURES.resolve()),
-            "MONOLIB_DEVICE": device().type, "MONOLIB_KERNELS": "warm" if kernels.warm_enabled() else "cold"}
+            "MONOLIB_DEVICE": device().type, "MONOLIB_KERNELS": "warm" if kernels.warm_enabled() else "cold",
+            locks.ENV: os.environ.get(locks.ENV, "")}  # the study's lock, held by the client for its tasks
+
+
+FINGERPRINT_ENV = "MONOLIB_FINGERPRINT"  # the client's `fingerprint`, with every task sent to a Dask worker
+
+
+# The libraries whose versions decide a cell's numbers (the GCN, the baselines, retrieval and the perception
+# readers a cell's graphs come from).
+LIBRARIES = ("torch", "torchvision", "torch_geometric", "numpy", "scipy", "pandas", "timm",
+             "segmentation_models_pytorch", "opencv-python-headless", "opencv-python", "scikit-image")
+
+
+def fingerprint(study_file: str) -> dict:
+    """Everything that decides a cell, computed afresh (no cache: a worker that lives on while the files it runs
+    change is seen): the code version of every stage, Python's and the libraries' versions, and the study as
+    loaded (its `extends` base file resolved; a hash)."""
+    import dataclasses
+    import json
+    import platform
+    from importlib import metadata
+
+    from monolib import versions
+    from monolib.params import load_study
+
+    code = {stage: versions.code_version.__wrapped__(stage) for stage in versions.STAGE_MODULES}
+    libraries = {"python": platform.python_version()}
+    for name in LIBRARIES:
+        try:
+            libraries[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            libraries[name] = None
+    try:
+        spec = dataclasses.asdict(load_study(study_file, check_files=False))
+        spec.pop("path", None)
+        study = hashlib.sha256(json.dumps(spec, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    except (StudyError, OSError) as exc:
+        study = f"unreadable ({exc})"
+    return {"code": code, "libraries": libraries, "study": study}
+
+
+def differences(mine: dict, theirs: dict) -> list[str]:
+    """What differs between two `fingerprint`s, in words (empty when nothing does)."""
+    out = [f"code of the {stage} stage" for stage in sorted(set(mine["code"]) | set(theirs["code"]))
+           if mine["code"].get(stage) != theirs["code"].get(stage)]
+    out += [f"{lib} {theirs['libraries'].get(lib)} (client {mine['libraries'].get(lib)})"
+            for lib in sorted(set(mine["libraries"]) | set(theirs["libraries"]))
+            if mine["libraries"].get(lib) != theirs["libraries"].get(lib)]
+    if mine["study"] != theirs["study"]:
+        out.append(f"the study as loaded ({theirs['study']}, client {mine['study']})")
+    return out
+
+
+def check_fingerprint(study_file: str, expected_json: str) -> None:
+    """Run by every cell task on a Dask worker before it computes: `StudyError` when the worker's `fingerprint`
+    (computed now, not at connection) differs from the client's."""
+    import json
+    import socket
+
+    diff = differences(json.loads(expected_json), fingerprint(study_file))
+    if diff:
+        raise StudyError(f"worker {socket.gethostname()} (pid {os.getpid()}) no longer computes cells as the client: "
+                         + "; ".join(diff) + " (install the client's version of the project and its libraries)")
 
 
 def worker_facts(token: str, study_file: str, device_type: str) -> dict:
     """Run on each worker by `connect`: can it read the client's files, and does it compute cells as the client."""
     import torch
 
-    from monolib.versions import code_version
-
     study = Path(study_file)
     return {"pid": os.getpid(), "token": Path(token).is_file(),
             "study_sha": hashlib.sha256(study.read_bytes()).hexdigest() if study.is_file() else None,
-            "code": code_version("cells"),
+            "fingerprint": fingerprint(study_file) if study.is_file() else None,
             "device_ok": device_type == "cpu" or torch.cuda.is_available()}
 
 
@@ -88,6 +151,20 @@ class Workers:
         return self.pool.submit(fn, *args, key=f"cell {name} {uuid.uuid4().hex[:8]}")  # named in the dashboard
 
 
+def scheduler_address(scheduler: str) -> str:
+    """The address of a ``--scheduler`` value that is not a file: ``tcp://host:port`` (or ``host:port``, another
+    protocol of Dask's, ``inproc://...``); `StudyError` for anything else (a scheduler file's path that does not
+    exist, a host without a port)."""
+    import re
+
+    if re.fullmatch(r"(tcp|tls|ucx|ws|wss)://[^\s/]+:\d+|inproc://\S+|[\w.\-]+:\d+", scheduler):
+        return scheduler
+    if "://" in scheduler:
+        raise StudyError(f"--scheduler {scheduler}: expected an address with a port (tcp://host:8786)")
+    raise StudyError(f"--scheduler {scheduler}: neither a scheduler file (no such file) nor an address "
+                     f"(tcp://host:8786, or the file `dask scheduler --scheduler-file FILE` wrote)")
+
+
 def check(scheduler: str, study: Study) -> None:
     """`connect` and close: the study runner calls it before its first stage, so that a wrong address or a worker
     that cannot run the cells stops the run before hours of perception."""
@@ -100,12 +177,13 @@ def connect(scheduler: str, study: Study, timeout: Optional[float] = None):
     from distributed import Client
 
     from monolib.io import write_text
-    from monolib.versions import code_version
 
     timeout = timeout or float(os.environ.get("MONOLIB_CONNECT_SECONDS", CONNECT_SECONDS))
-    kwargs = {"scheduler_file": scheduler} if Path(scheduler).is_file() else {"address": scheduler}
+    kwargs = {"scheduler_file": scheduler} if Path(scheduler).is_file() else {"address": scheduler_address(scheduler)}
     try:
         client = Client(timeout=timeout, **kwargs)
+    except ValueError as exc:  # a scheduler file that is not one
+        raise StudyError(f"--scheduler {scheduler}: not a Dask scheduler file ({exc})") from None
     except (OSError, TimeoutError) as exc:
         raise StudyError(f"--scheduler {scheduler}: no Dask scheduler answered within {timeout:g} s ({exc}); "
                          f"start one with `dask scheduler` and workers with `dask worker ADDRESS`") from None
@@ -123,6 +201,7 @@ def connect(scheduler: str, study: Study, timeout: Optional[float] = None):
     finally:
         token.unlink(missing_ok=True)
     sha = hashlib.sha256(Path(study.path).read_bytes()).hexdigest()
+    mine = fingerprint(str(study.path))
     problems = []
     for address, f in sorted(facts.items()):
         if not f["token"]:
@@ -130,8 +209,10 @@ def connect(scheduler: str, study: Study, timeout: Optional[float] = None):
                             f"at the same path: a shared file system)")
         if f["study_sha"] != sha:
             problems.append(f"{address}: {'has another' if f['study_sha'] else 'cannot read the'} study file {study.path}")
-        if f["code"] != code_version("cells"):
-            problems.append(f"{address}: runs other monolib code (install this project's version on the workers)")
+        diff = differences(mine, f["fingerprint"]) if f["fingerprint"] is not None else []
+        if diff:
+            problems.append(f"{address}: computes cells otherwise: {'; '.join(diff)} (install this project's version "
+                            f"and its libraries on the workers)")
         if not f["device_ok"]:
             problems.append(f"{address}: has no CUDA device, and the cells' keys were computed for one "
                             f"(MONOLIB_DEVICE={env['MONOLIB_DEVICE']} here)")

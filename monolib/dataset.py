@@ -1,8 +1,11 @@
 """The frames a study uses: open (or render) its dataset and select train / validation / test frames."""
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -25,10 +28,36 @@ def dataset_key(study: Study) -> str:
     """Cache key of the study's frames: the dataset parameters, the seed and, for a rendered mini-Hypersim, the
     version of the generator's code (`monolib.versions`). Part of every later stage's key."""
     from monolib.params import key_of
-    from monolib.versions import code_version
+    from monolib.versions import code_version, library_versions
 
-    code = code_version("dataset") if study.dataset.source == "synth" else None
-    return key_of({"dataset": study.dataset, "seed": study.seed, "code": code})
+    spec = dataclasses.asdict(study.dataset)
+    for where in ("root", "metadata_dir", "workers"):  # where the files are and how many processes read them
+        spec.pop(where)
+    if study.dataset.source == "synth":
+        return key_of({"dataset": spec, "seed": study.seed, "code": code_version("dataset"),
+                       "libraries": library_versions("dataset")})
+    return key_of({"dataset": spec, "seed": study.seed, "download": download_fingerprint(study)})
+
+
+def download_fingerprint(study: Study) -> Optional[str]:
+    """What a real download holds, cheaply: the sha256 of its split file (which names every frame of every
+    setting) and the names of its setting folders. Files replaced in place under the same names are not seen:
+    delete the study's runs folder after such a change."""
+    from monolib.io import sha256
+
+    root = study.dataset_root
+    meta = study.metadata_dir or root
+    split = Path(meta) / "metadata_images_split_scene_v1.csv"
+    if not root.is_dir():
+        return None
+    names = sorted(p.name for p in root.iterdir() if p.is_dir() and p.name.startswith("ai_"))
+    return key_of_text([sha256(split) if split.is_file() else "", *names])
+
+
+def key_of_text(parts: list[str]) -> str:
+    import hashlib
+
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()[:16]
 
 
 def open_dataset(study: Study) -> HypersimDataset:
@@ -62,7 +91,7 @@ def select_frames(study: Study, ds: HypersimDataset, val_settings: int) -> Selec
     evenly spread); the last `val_settings` of them are validation. `dataset.max_settings` limits the training
     settings. Real Hypersim's 'val' partition counts as training data here (the study's validation is taken from it).
     """
-    from monolib.retrieval import protocol_settings
+    from monolib.protocols import protocol_settings
 
     pr = study.protocol
     test_names = [s for s in ds.settings("test") if len(ds.frames(s)) >= pr.frames]

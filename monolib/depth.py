@@ -326,12 +326,10 @@ def depth_loss(log_pred: torch.Tensor, gt: torch.Tensor, lam: float = 0.5, grad_
     mf = m.float()
     d = (log_pred - torch.log(torch.where(m, gt, torch.ones_like(gt)))) * mf
     n = mf.sum(dim=(1, 2))
-    has = n > 0
-    if not has.any():
-        return log_pred.sum() * 0.0
+    has = (n > 0).to(log_pred.dtype)  # frames with a valid pixel; no branch on the data (any device, `meta` too)
     mean_d = d.sum(dim=(1, 2)) / n.clamp(min=1)
     mean_d2 = (d * d).sum(dim=(1, 2)) / n.clamp(min=1)
-    si = (mean_d2 - lam * mean_d * mean_d)[has].mean()
+    si = ((mean_d2 - lam * mean_d * mean_d) * has).sum() / has.sum().clamp(min=1)  # 0 when no frame has one
     g = 0.0
     dd, mm = d, mf
     for s in range(scales):

@@ -83,18 +83,24 @@ class GraphPool:
                           num_graphs=len(idx))
 
 
+SPARSE_DEVICES = ("cpu", "cuda")  # where torch multiplies a sparse CSR matrix (not `meta`, not every backend)
+
+
 def normalised_adjacency(edge_index: torch.Tensor, weight: Optional[torch.Tensor], num_nodes: int,
-                         dtype: torch.dtype) -> torch.Tensor:
-    """GCNConv's normalised adjacency (self-loops added, D^-1/2 A D^-1/2: PyG's own `gcn_norm`) as a sparse CSR
-    matrix, transposed as PyG's `adj_t`: computed once per batch for all five layers instead of once per layer,
-    and each layer's propagation is then one sparse-dense product instead of a gather and a scatter over the edges
-    (a quick cell trains in about 0.65 of the time; the sums run in another order than the scatter's, so the
-    weights differ in the last bits from the edge-list path, and are as reproducible: same inputs, same bits)."""
+                         dtype: torch.dtype) -> tuple:
+    """GCNConv's normalised adjacency (self-loops added, D^-1/2 A D^-1/2: PyG's own `gcn_norm`), computed once per
+    batch for all five layers instead of once per layer: the arguments of each layer after the features. Where
+    torch has sparse products (`SPARSE_DEVICES`) a sparse CSR matrix, transposed as PyG's `adj_t`, and each layer's
+    propagation is one sparse-dense product instead of a gather and a scatter over the edges (a quick cell trains in
+    about 0.65 of the time; its sums run in another order than the scatter's, so the weights differ from the
+    edge-list path in the last bits, and are as reproducible); elsewhere the edge list and its weights."""
     index, value = gcn_norm(edge_index, weight, num_nodes, False, True, "source_to_target", dtype)
+    if index.device.type not in SPARSE_DEVICES:
+        return index, value
     with warnings.catch_warnings():  # "Sparse CSR tensor support is in beta": CSR @ dense and its backward are used
         warnings.simplefilter("ignore", UserWarning)
-        return torch.sparse_coo_tensor(index.flip(0), value, (num_nodes, num_nodes),
-                                       check_invariants=False).coalesce().to_sparse_csr()
+        return (torch.sparse_coo_tensor(index.flip(0), value, (num_nodes, num_nodes),
+                                        check_invariants=False).coalesce().to_sparse_csr(),)
 
 
 class GraphEncoder(nn.Module):
@@ -151,7 +157,7 @@ class GraphEncoder(nn.Module):
             if self.spec.conv in ("gine", "gatv2"):
                 h = conv(h, batch.edge_index, length)
             else:
-                h = conv(h, adjacency)
+                h = conv(h, *adjacency)
             if i < len(self.convs) - 1 or self.lin is not None:  # no ReLU on a last conv that maps to the output
                 h = h.relu()
         if self.lin is not None:

@@ -16,11 +16,8 @@ from typing import Any, Optional
 
 import yaml
 
-from monolib import paths
-
-
-class StudyError(ValueError):
-    """A study file that cannot be run; the message names the file and the key."""
+from monolib import manifests, paths
+from monolib.errors import StudyError  # noqa: F401  (raised here; re-exported for every caller)
 
 
 @dataclass
@@ -146,10 +143,15 @@ class Protocol:
     """The evaluation protocols; both are drawn from the same test frames and evaluated on the same encoders.
 
     `paper`: `settings` test settings of as many different families (`ai_VVV`, the first setting of each in sorted
-    order). `siblings`: `siblings` families of two settings each (both evaluated; 0: no siblings protocol).
+    order) when `families` holds; otherwise `settings` test settings taken in turn from each family in name order
+    (the paper took 16 settings of its test split, which holds 3 volumes). `families` defaults to true where the
+    data has families by construction (the mini-Hypersim, whose sibling settings must stay out of `paper`) and to
+    false on real Hypersim and published graphs. `siblings`: `siblings` families of two settings each (both
+    evaluated; 0: no siblings protocol).
     Each setting: `frames` frames, `queries` queries and `positives` positives."""
     settings: int = 16
     siblings: int = 0                        # families of 2 settings in the `siblings` protocol (0: none)
+    families: Optional[bool] = None          # `paper` settings of different families (default: synth data only)
     frames: int = 41
     queries: int = 35
     positives: int = 6
@@ -407,11 +409,9 @@ def _check(study: Study, check_files: bool = True) -> None:
         if spec.val_settings < 0:
             bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
         if spec.weights and check_files:
-            from monolib import zoo
-
             try:
-                zoo.check_architecture(spec, task, resolve_path(spec.weights, study.path), f"{where}.weights")
-            except zoo.WeightsError as exc:
+                manifests.check_architecture(spec, task, resolve_path(spec.weights, study.path), f"{where}.weights")
+            except manifests.WeightsError as exc:
                 raise StudyError(str(exc)) from None
     for sname, sc in study.scenarios.items():
         if sc.depth != "gt" and sc.depth not in [d.name for d in study.perception.depth]:
@@ -490,6 +490,8 @@ def load_study(study: str | Path, check_files: bool = True) -> Study:
     try:
         s = _build(Study, data, "")
         s.path = str(path)
+        if s.protocol.families is None:  # families by construction: the mini-Hypersim only
+            s.protocol.families = s.dataset.source == "synth" and not s.graphs_root
         _check(s, check_files)
     except StudyError as exc:
         raise StudyError(f"{path}: {exc}") from None

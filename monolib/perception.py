@@ -14,6 +14,7 @@ Cache layout (``<key>`` = `model_key`: the model's spec + the dataset parameters
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from contextlib import contextmanager
@@ -46,25 +47,47 @@ def _spec(study: Study, name: str):
 
 
 def model_key(study: Study, name: str) -> str:
-    """Cache key of one model: its spec, the dataset's key, the seed, the device and deterministic mode, whether
-    the predictions are made in float16 (`perception.amp` on CUDA; never on the CPU), and the version of the
-    perception code (`monolib.versions`). Not part of it: GCN and scenario settings, the loader workers (which change
-    no prediction) and `predict_batch` (a throughput setting: on the CPU a depth prediction depends on the size of
-    its batch only in its last bits, and a new key would train the models again)."""
+    """Cache key of one model and its predictions: its spec (not its name or role, which are labels), the
+    content of its shipped weights or checkpoint file (not their paths), the dataset's key, the seed, the device
+    and deterministic mode, whether the predictions are made in float16 (`perception.amp` on CUDA; never on the
+    CPU), the stage's thread count and `predict_batch` (on the CPU a prediction depends on both in its last bits),
+    the version of the perception code and of its libraries (`monolib.versions`). Not part of it: GCN and
+    scenario settings, the loader workers (which change no prediction)."""
     from monolib.dataset import dataset_key
     from monolib.device import device
-    from monolib.versions import code_version
+    from monolib.versions import code_version, library_versions
 
     spec, task = _spec(study, name)
-    shipped = None
+    shipped = checkpoint = None
     if spec.weights:  # the shipped file's identity (its manifest's sha256, checked when it is loaded)
-        from monolib import zoo
+        from monolib import manifests
 
-        shipped = zoo.read_manifest(resolve_path(spec.weights, study.path))["sha256"]
-    return key_of({"task": task, "spec": dataclasses.asdict(spec), "dataset": dataset_key(study),
+        shipped = manifests.read_manifest(resolve_path(spec.weights, study.path))["sha256"]
+    if spec.checkpoint:  # an outside file: its content, not its path
+        checkpoint = _file_sha256(resolve_path(spec.checkpoint, study.path))
+    fields = dataclasses.asdict(spec)
+    for label in ("name", "role", "weights", "checkpoint"):  # names and paths: the files' content is below
+        fields.pop(label, None)
+    return key_of({"task": task, "spec": fields, "dataset": dataset_key(study),
                    "seed": study.seed, "device": device().type, "deterministic": study.deterministic,
                    "amp": study.perception.amp and device().type == "cuda",
-                   "code": code_version("perception"), "weights": shipped})
+                   "threads": study.perception.threads, "predict_batch": study.perception.predict_batch,
+                   "code": code_version("perception"), "libraries": library_versions("perception"),
+                   "weights": shipped, "checkpoint": checkpoint})
+
+
+@functools.lru_cache(maxsize=32)
+def _file_sha256_at(path: str, size: int, mtime_ns: int) -> str:
+    return io.sha256(path)
+
+
+def _file_sha256(path: Path) -> Optional[str]:
+    """sha256 of a file (hashed once per size and modification time); None when it is absent (the stage says so)."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    st = path.stat()
+    return _file_sha256_at(str(path), st.st_size, st.st_mtime_ns)
 
 
 def model_tag(study: Study, name: str) -> str:
@@ -168,11 +191,29 @@ def evaluate_segmentation(pairs) -> dict:
     return scores(conf)
 
 
+# A depth network whose predictions hold more than this share of non-finite pixels (NaN, inf) is an error, never a
+# cached model: those pixels would leave the depth metrics and the scene graphs silently (a network predicting NaN
+# for 90% of the pixels would report a good abs_rel on the other 10%). A sound network predicts none.
+MAX_NONFINITE_SHARE = 0.001
+
+
+class NonFiniteDepth(io.DataFileError):
+    """A depth network predicts non-finite depth for more than `MAX_NONFINITE_SHARE` of the pixels."""
+
+
 def evaluate_depth(pairs) -> dict:
-    """pairs: iterable of (gt float32 (H, W), pred float32 (H, W)). Frames without valid depth are skipped."""
+    """pairs: iterable of (gt float32 (H, W), pred float32 (H, W)). Frames without valid depth are skipped by the
+    error metrics; ``nonfinite_share`` counts the predicted pixels that are NaN or inf over every frame."""
     from monolib.depth import depth_errors, summarise
 
-    return summarise([depth_errors(pred, gt) for gt, pred in pairs])
+    rows, nonfinite, total = [], 0, 0
+    for gt, pred in pairs:
+        rows.append(depth_errors(pred, gt))
+        nonfinite += int(np.count_nonzero(~np.isfinite(pred)))
+        total += int(np.size(pred))
+    out = summarise(rows)
+    out["nonfinite_share"] = nonfinite / total if total else 0.0
+    return out
 
 
 # ---- the stage -----------------------------------------------------------------------------------------------
@@ -216,10 +257,10 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
         return model, history, "loaded"
     t0 = time.perf_counter()
     if spec.weights:  # the project's zoo: inference only
-        from monolib import zoo
+        from monolib import manifests, weights
 
-        model = zoo.load(spec, task, spec.weights, study.path)
-        manifest = zoo.read_manifest(resolve_path(spec.weights, study.path))
+        model = weights.load(spec, task, spec.weights, study.path)
+        manifest = manifests.read_manifest(resolve_path(spec.weights, study.path))
         history = {"epochs": [], "source": str(spec.weights), "sha256": manifest["sha256"],
                    "pretrain_seconds": manifest.get("train_seconds"), "train_seconds": 0.0}
         print(f"perception: {name} from the zoo ({spec.weights}, trained {manifest.get('train_seconds')} s on "
@@ -341,7 +382,8 @@ def _rows(study: Study, name: str) -> list[dict]:
     if m is None:
         return []
     role = "DeepLabV3" if task == "segmentation" else spec.role
-    keys = ["pixel_accuracy", "miou"] if task == "segmentation" else ["abs_rel", "rmse", "delta1", "median_ratio"]
+    keys = ["pixel_accuracy", "miou"] if task == "segmentation" else ["abs_rel", "rmse", "delta1", "median_ratio",
+                                                                      "nonfinite_share"]
     keys += ["inference_ms_per_frame"]
     return [{"model": name, "role": role, "backbone": spec.backbone, "task": task, "metric": k,
              "value": m.get(k, float("nan")), "train_seconds": m.get("train_seconds", float("nan"))} for k in keys]
@@ -390,6 +432,11 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
             model, history, how = _train_or_load(study, name, sel, progress)
             n_pred, n_run, secs = _predict_all(study, name, model, frames, progress)
             metrics = _evaluate(study, name, sel.test)
+            if metrics.get("nonfinite_share", 0.0) > MAX_NONFINITE_SHARE:  # before anything marks it done
+                raise NonFiniteDepth(
+                    f"perception model {name!r} ({model_dir(study, name)}): {metrics['nonfinite_share']:.2%} of its "
+                    f"predicted test pixels are NaN or inf (at most {MAX_NONFINITE_SHARE:.1%} allowed); its metrics "
+                    f"and graphs are not made from them. Train it again (delete that folder) or check its weights")
             old = model_dir(study, name) / "metrics.json"
             old_ms = (io.load_cached(old, io.read_json_dict, f"test metrics of {name}") or {}).get("inference_ms_per_frame")
             metrics.update(

@@ -144,7 +144,7 @@ def select(study: Study) -> dict[str, list[Data]]:
         for g in read_folder(root / split):
             by_setting.setdefault(split, {}).setdefault(g.setting, []).append(g)
     test_names = [s for s in sorted(by_setting["test"]) if len(by_setting["test"][s]) >= pr.frames]
-    from monolib.retrieval import ProtocolDataError, protocol_settings
+    from monolib.protocols import ProtocolDataError, protocol_settings
 
     try:
         chosen = protocol_settings(test_names, pr, f"{root / 'test'} ({len(by_setting['test'])} settings)")

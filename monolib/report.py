@@ -22,7 +22,7 @@ from typing import Optional
 
 import pandas as pd
 
-from monolib import figures, io, paths, results, statistics, tables
+from monolib import figures, grid, io, paths, results, statistics, tables
 from monolib.params import PAPER
 
 log = logging.getLogger(__name__)
@@ -79,15 +79,23 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     if study is None:
         study = _load_study(study_name)
     out = paths.figures_dir(study_name)
-    numbers = results.collect(study_name)
-    labels = {**results.recorded_labels(study_name), **(results.labels_of(study) if study is not None else {}),
+    # the cells of the study's grid and nothing else: a seed, threshold or method dropped from the study file
+    # leaves its cells on disk, out of the tables (without the study file: every cell found)
+    cells = grid.names(study) if study is not None else None
+    stale = results.left_out(study_name, cells) if cells is not None else []
+    if stale:
+        log.warning("%s: %d cells outside the study's grid left out of the report (kept on disk), e.g. %s",
+                    results.cells_root(study_name), len(stale), stale[0].parent)
+    numbers = results.collect(study_name, cells)
+    numbers.attrs["left_out"] = len(stale)
+    labels = {**results.recorded_labels(study_name, cells), **(results.labels_of(study) if study is not None else {}),
               **dict(scenario_labels or {})}
     written: dict[str, Path] = {}
     io.write_text(out / "results.csv", numbers.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
     written["results"] = out / "results.csv"
 
     try:
-        qv_all = results.query_table(study_name)
+        qv_all = results.query_table(study_name, cells)
     except FileNotFoundError as exc:
         print(f"{study_name}: no per-query rankings, tables without intervals ({exc})")
         qv_all = None
@@ -113,7 +121,8 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     hidden = set(info.loc[~info["in_tables"].astype(bool), "scenario"])
     in_tables = numbers[~numbers["scenario"].isin(hidden)]
     for p in protos:
-        written.update(tables.write_tables(in_tables, out, labels, iv_all, tests, n_boot, protocol=p))
+        note = tables.protocol_note(p, study.protocol if study is not None else None)
+        written.update(tables.write_tables(in_tables, out, labels, iv_all, tests, n_boot, protocol=p, note=note))
     written["recall_vs_threshold"] = figures.fig_recall_vs_threshold(in_tables, out / "recall_vs_threshold.png",
                                                                      method, scenario_labels=labels, intervals=iv_all)
     if rgb_of is not None and (in_tables["method"] == method).any():

@@ -34,7 +34,7 @@ from __future__ import annotations
 import logging
 import math
 import re
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Optional
 
@@ -161,9 +161,20 @@ def sort_rows(df: pd.DataFrame, by: list[str]) -> pd.DataFrame:
 
 # ---- collect ---------------------------------------------------------------------------------------------------
 
-def cell_files(study_name: str) -> list[Path]:
-    """Every ``cell.json`` of a study, sorted."""
-    return sorted(cells_root(study_name).glob("*/*/cell.json"))
+def cell_files(study_name: str, grid: Optional[Collection[str]] = None) -> list[Path]:
+    """Every ``cell.json`` of a study, sorted; with `grid` (cell names ``method/scenario__t<t>__s<seed>``,
+    `monolib.grid.names`) only the cells of the grid."""
+    files = sorted(cells_root(study_name).glob("*/*/cell.json"))
+    if grid is None:
+        return files
+    return [f for f in files if f"{f.parent.parent.name}/{f.parent.name}" in grid]
+
+
+def left_out(study_name: str, grid: Collection[str]) -> list[Path]:
+    """The ``cell.json`` files of a study's folder outside its grid (a seed, threshold, scenario or method no
+    longer in the study file): kept on disk, left out of every table."""
+    inside = set(cell_files(study_name, grid))
+    return [f for f in cell_files(study_name) if f not in inside]
 
 
 def read_rankings(cell: Path) -> pd.DataFrame:
@@ -174,16 +185,18 @@ def read_rankings(cell: Path) -> pd.DataFrame:
     return pd.read_csv(f)
 
 
-def collect(study_name: str) -> pd.DataFrame:
-    """All cells of a study in long format: one row per number.
+def collect(study_name: str, grid: Optional[Collection[str]] = None) -> pd.DataFrame:
+    """All cells of a study (with `grid`: the cells of the grid only, see `cell_files`) in long format: one row
+    per number.
 
     Columns ``method, scenario, threshold (float, inf for 'inf'), seed, protocol ('paper'|'siblings'), metric
     ('recall'|'precision'), k, value`` (percent), sorted by method, scenario (natural order), threshold, seed,
     protocol, metric, k. Raises FileNotFoundError when the study has no cell yet.
     """
-    files = cell_files(study_name)
+    files = cell_files(study_name, grid)
     if not files:
-        raise FileNotFoundError(f"{cells_root(study_name)}: no cell.json found; run the study's cells first")
+        raise FileNotFoundError(f"{cells_root(study_name)}: no cell.json found{' of the grid' if grid else ''}; "
+                                "run the study's cells first")
     rows = []
     for f in files:
         cell = io.read_json(f)
@@ -202,10 +215,10 @@ def collect(study_name: str) -> pd.DataFrame:
     return sort_rows(df, ["method", "scenario", "threshold", "seed", "protocol", "metric", "k"])
 
 
-def recorded_labels(study_name: str) -> dict[str, str]:
+def recorded_labels(study_name: str, grid: Optional[Collection[str]] = None) -> dict[str, str]:
     """``{scenario: label}`` as the cells recorded them (``scenario_label`` in cell.json)."""
     out: dict[str, str] = {}
-    for f in cell_files(study_name):
+    for f in cell_files(study_name, grid):
         cell = io.read_json(f)
         if cell.get("scenario_label"):
             out.setdefault(str(cell["scenario"]), str(cell["scenario_label"]))
@@ -362,13 +375,14 @@ def check_protocol(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Op
 
 
 def check_protocols(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Optional[int] = None,
-                    settings: Optional[Mapping[str, int]] = None) -> dict[str, dict]:
+                    settings: Optional[Mapping[str, int]] = None, families: bool = True) -> dict[str, dict]:
     """`check_protocol` for every protocol of a cell (``rankings.csv`` and ``protocol.csv`` with their
     ``protocol`` column), and the protocols' shapes: ``paper``'s settings are all of different families
-    (``ai_VVV``), ``siblings``' settings are pairs of one family; with `settings` (``{protocol: number of
+    (``ai_VVV``) unless `families` is false (`Protocol.families`: real data, where ``paper`` takes its settings in
+    turn from fewer families), ``siblings``' settings are pairs of one family; with `settings` (``{protocol: number of
     settings}``) each protocol has that many. Both files must hold the same protocols.
     Returns ``{protocol: counts}``."""
-    from monolib.retrieval import family
+    from monolib.protocols import family
 
     ranked, drawn = split_protocols(rankings), split_protocols(protocol)
     if list(ranked) != list(drawn):
@@ -379,7 +393,7 @@ def check_protocols(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: O
         out[name] = check_protocol(r, d, positives)
         names = sorted(d["setting"].astype(str).unique())
         fams = pd.Series(names).map(family).value_counts()
-        if name == PAPER and (fams > 1).any():
+        if name == PAPER and families and (fams > 1).any():
             raise ProtocolError(f"protocol {name}: settings of one family: {sorted(n for n in names if fams[family(n)] > 1)}")
         if name == SIBLINGS and (fams != 2).any():
             raise ProtocolError(f"protocol {name}: families without exactly 2 settings: {sorted(fams[fams != 2].index)}")
@@ -437,13 +451,13 @@ def check_recorded_metrics(cell: Path, protocol: str, recorded: Mapping[str, flo
                                     f"{again!r} from rankings.csv: the cell's files disagree")
 
 
-def query_table(study_name: str) -> pd.DataFrame:
+def query_table(study_name: str, grid: Optional[Collection[str]] = None) -> pd.DataFrame:
     """Per-query values of every cell of a study: ``method, scenario, threshold, seed, protocol, setting, query``
     and one column per metric the cell recorded (see `per_query_values`), read from each cell's ``rankings.csv``,
     protocol by protocol. Raises `CellMismatchError` when a cell's recorded metrics are not the means of its
     per-query values (`check_recorded_metrics`)."""
     parts = []
-    for f in cell_files(study_name):
+    for f in cell_files(study_name, grid):
         cell = io.read_json(f)
         try:
             recorded = cell_metrics(cell)

@@ -21,47 +21,12 @@ import pandas as pd
 import torch
 
 from monolib.params import PAPER, SIBLINGS, Protocol
+from monolib.protocols import ProtocolDataError, family, protocol_settings  # noqa: F401  (re-exported)
 
 
-class ProtocolDataError(ValueError):
-    """The test data cannot provide a protocol (too few families, a family without a sibling, too few frames)."""
-
-
-def family(setting: str) -> str:
-    """The family of a setting: the ``ai_VVV`` part of ``ai_VVV_NNN`` (a Hypersim volume)."""
-    parts = str(setting).split("_")
-    return "_".join(parts[:2]) if len(parts) >= 3 else str(setting)
-
-
-def protocol_settings(settings, protocol: Protocol, where: str = "test split") -> dict[str, list[str]]:
-    """``{protocol: its settings (sorted)}`` chosen from `settings` (the test settings that hold enough frames).
-
-    ``paper``: the first setting (sorted by name) of each of the first `protocol.settings` families (sorted), so
-    every setting is of another family. ``siblings`` (when `protocol.siblings` > 0): the first `protocol.siblings`
-    families (sorted) holding at least 2 of the settings, their first two settings each. The rule only reads names,
-    and applied to the union of its own result it gives that result again (what a cell sees). Raises
-    `ProtocolDataError` naming what is missing."""
-    names = sorted(set(map(str, settings)))
-    fams: dict[str, list[str]] = {}
-    for n in names:
-        fams.setdefault(family(n), []).append(n)
-    out: dict[str, list[str]] = {}
-    if len(fams) < protocol.settings:
-        raise ProtocolDataError(
-            f"{where}: the paper protocol needs {protocol.settings} test settings of different families (ai_VVV) "
-            f"with >= {protocol.frames} frames (protocol.settings); found {len(fams)} families among "
-            f"{len(names)} such settings ({', '.join(sorted(fams)) or 'none'})")
-    out[PAPER] = sorted(fams[f][0] for f in sorted(fams)[: protocol.settings])
-    if protocol.siblings > 0:
-        pairs = [f for f in sorted(fams) if len(fams[f]) >= 2]
-        if len(pairs) < protocol.siblings:
-            single = [f for f in sorted(fams) if len(fams[f]) < 2]
-            raise ProtocolDataError(
-                f"{where}: the siblings protocol needs {protocol.siblings} families (ai_VVV) with 2 test settings of "
-                f">= {protocol.frames} frames each (protocol.siblings); found {len(pairs)} "
-                f"({', '.join(pairs) or 'none'}); families without a sibling: {', '.join(single) or 'none'}")
-        out[SIBLINGS] = sorted(n for f in pairs[: protocol.siblings] for n in fams[f][:2])
-    return out
+def ranking_depth(protocol: Protocol) -> int:
+    """How many candidates a cell's rankings keep per query: the largest k of the metrics, at least 10."""
+    return max(list(protocol.recall_k) + list(protocol.precision_k) + [10])
 
 
 def protocol_seed(seed: int, name: str) -> int:
@@ -143,7 +108,7 @@ def metrics_from_hits(hits: np.ndarray, recall_k, precision_k) -> dict[str, floa
 def evaluate(embeddings, frames: list[str], settings, protocol: Protocol, seed: int, n_settings: int | None = None):
     """One protocol on exactly these frames: (metrics dict in percent, rankings DataFrame, the Draw)."""
     draw = draw_protocol(frames, settings, protocol, seed, n_settings)
-    kmax = max(list(protocol.recall_k) + list(protocol.precision_k) + [10])
+    kmax = ranking_depth(protocol)
     q, idx, dist = rank(embeddings, draw, kmax)
     hits = draw.settings[idx] == draw.settings[q][:, None]
     return metrics_from_hits(hits, protocol.recall_k, protocol.precision_k), rankings_table(draw, q, idx, dist), draw

@@ -10,6 +10,7 @@ import logging
 import os
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import pandas as pd
@@ -20,7 +21,7 @@ from monolib.progress import tqdm
 from monolib import dataset as dataset_mod
 from monolib.graph import NODE_FEATURES, complete_graph, scene_nodes
 from monolib.io import DataFileError, load_cached, save_torch
-from monolib.params import Study, key_of
+from monolib.params import Study, key_of, resolve_path
 
 log = logging.getLogger(__name__)
 SPLITS = ("train", "val", "test")
@@ -36,11 +37,25 @@ def scenario_key(study: Study, scenario: str) -> str:
     for role, name in (("depth", sc.depth), ("semantic", sc.semantic)):
         sources[role] = "gt" if name == "gt" else perception.model_key(study, name)
     from monolib.dataset import dataset_key
-    from monolib.versions import code_version
+    from monolib.versions import code_version, library_versions
 
-    return key_of({"dataset": dataset_key(study), "graphs_root": study.graphs_root, "seed": study.seed,
-                   "protocol": study.protocol, "val": study.gcn.val_settings, "sources": sources,
-                   "depth_scale": sc.depth_scale, "code": code_version("graphs")})
+    pr = study.protocol  # what chooses the frames (not the k of the metrics, nor the queries' draw)
+    return key_of({"dataset": dataset_key(study), "published": published_fingerprint(study), "seed": study.seed,
+                   "frames": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
+                              "frames": pr.frames},
+                   "val": study.gcn.val_settings, "sources": sources, "depth_scale": sc.depth_scale,
+                   "code": code_version("graphs"), "libraries": library_versions("graphs")})
+
+
+def published_fingerprint(study: Study) -> Optional[str]:
+    """The published graph files of a study (`graphs_root`) by name and size, not by where they are."""
+    if not study.graphs_root:
+        return None
+    import hashlib
+
+    root = resolve_path(study.graphs_root, study.path)
+    files = sorted(f"{p.relative_to(root)}:{p.stat().st_size}" for p in root.glob("*/*_graphs.pt"))
+    return hashlib.sha256("\n".join(files).encode()).hexdigest()[:16]
 
 
 def graphs_path(study: Study, scenario: str) -> Path:
@@ -50,8 +65,9 @@ def graphs_path(study: Study, scenario: str) -> Path:
 _OPEN: dict = {}
 
 
-def _frame_nodes(args) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Worker: the nodes of one frame for each scenario, reading every source once."""
+def _frame_nodes(args) -> list[tuple]:
+    """Worker: per scenario, the nodes of one frame ``(x, pos, dropped pixels[, error])``, reading every source
+    once; `dropped pixels`: labelled pixels left out for their depth (NaN, inf, <= 0)."""
     study, scenarios, key = args
     from monolib import perception
 
@@ -72,11 +88,15 @@ def _frame_nodes(args) -> list[tuple[np.ndarray, np.ndarray]]:
         sc = study.scenarios[sc_name]
         try:
             depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
-            out.append(scene_nodes(f.rgb, depth, source("semantic", sc.semantic), f.camera))
+            semantic = source("semantic", sc.semantic)
+            x, pos = scene_nodes(f.rgb, depth, semantic, f.camera)
+            with np.errstate(invalid="ignore"):  # labelled pixels left out for their depth (NaN, inf, <= 0)
+                dropped = int(np.count_nonzero((np.asarray(semantic) >= 1) & ~(np.isfinite(depth) & (depth > 0))))
+            out.append((x, pos, dropped))
         except perception.PredictionsMissing:  # a model's prediction: never an empty graph
             raise
         except (DataFileError, FileNotFoundError) as exc:  # a missing file of the download: an empty graph, counted
-            out.append((np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32), str(exc)))
+            out.append((np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32), 0, str(exc)))
     return out
 
 
@@ -97,6 +117,7 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
         return out
     t0 = time.perf_counter()
     missing: dict[str, list[str]] = {}
+    dropped: dict[str, dict[str, list[int]]] = {}  # labelled pixels left out for their depth, per frame
     if study.graphs_root:
         from monolib import published
 
@@ -124,17 +145,19 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
         built = {}
         for i, sc in enumerate(todo):
             built[sc] = {split: [] for split in SPLITS}
-            missing[sc] = []
+            missing[sc], dropped[sc] = [], {split: [] for split in SPLITS}
             for (split, f), per_scenario in zip(frames, nodes):
-                x, pos, *error = per_scenario[i]
+                x, pos, n_dropped, *error = per_scenario[i]
                 missing[sc] += [f"{f.key}: {e}" for e in error]
+                dropped[sc][split].append(n_dropped)
                 built[sc][split].append(complete_graph(x, pos, f.setting, f.key))
             if missing[sc]:
                 print(f"graphs: {sc}: {len(missing[sc])} frames have a missing or unreadable file of the dataset and "
                       f"are empty graphs (counted in graph_sizes.md; first: {missing[sc][0]})", flush=True)
     seconds = time.perf_counter() - t0
     for sc in todo:
-        save_torch(out[sc], {"scenario": sc, "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds})
+        save_torch(out[sc], {"scenario": sc, "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds,
+                             "dropped_pixels": dropped.get(sc)})
         n = sum(len(v) for v in built[sc].values())
         log.info("graphs: %s built, %d graphs (%d scenarios in %.1f s)", sc, n, len(todo), seconds)
     return out
@@ -166,7 +189,8 @@ def load(study: Study, scenario: str, progress: bool = False) -> dict[str, list[
 # ---- graph sizes per scenario and threshold (what a threshold changes) ----------------------------------------
 
 SIZE_COLUMNS = ["scenario", "label", "threshold", "test_graphs", "test_nodes", "test_edges", "test_empty",
-                "train_graphs", "train_nodes", "train_edges", "same_graphs_as", "missing_frames"]
+                "train_graphs", "train_nodes", "train_edges", "same_graphs_as", "missing_frames",
+                "dropped_pixels", "frames_with_dropped_pixels"]
 
 
 def identical_thresholds(pair_len: torch.Tensor, thresholds) -> dict[float, float]:
@@ -189,7 +213,7 @@ def identical_thresholds(pair_len: torch.Tensor, thresholds) -> dict[float, floa
 def _scenario_thresholds(study: Study) -> dict[str, list[float]]:
     """The thresholds each scenario's graph cells run at (every graph method of the grid)."""
     from monolib import methods
-    from monolib.study import grid
+    from monolib.grid import grid
 
     out: dict[str, set] = {}
     for c in grid(study):
@@ -202,7 +226,9 @@ def graph_sizes(study: Study) -> pd.DataFrame:
     """Nodes and edges per graph for each scenario and threshold of the study's grid: means over the test split's
     graphs and over the training split's (training + validation settings); edges = node pairs joined (the encoder
     reads each in both directions); ``test_empty``: test graphs without a node; ``missing_frames``: frames of the scenario (all splits) with a
-    missing or unreadable dataset file, each an empty graph; ``same_graphs_as``: the smallest
+    missing or unreadable dataset file, each an empty graph; ``dropped_pixels``: labelled pixels per frame (mean
+    over all splits) left out of the nodes for their depth (NaN, inf or <= 0), ``frames_with_dropped_pixels``: the
+    frames with any (NaN and -1 for graphs that were not built here: published graphs); ``same_graphs_as``: the smallest
     threshold whose graphs (every split) are identical (`identical_thresholds`; NaN when none). Columns
     `SIZE_COLUMNS`."""
     from monolib.graph import pair_mask
@@ -225,6 +251,9 @@ def graph_sizes(study: Study) -> pd.DataFrame:
             row["test_empty"] = int(sum(int(g.num_nodes) == 0 for g in parts["test"]))
             row["same_graphs_as"] = same.get(t, float("nan"))
             row["missing_frames"] = len(data.get("missing", []))
+            per_frame = [n for split in (data.get("dropped_pixels") or {}).values() for n in split]
+            row["dropped_pixels"] = float(np.mean(per_frame)) if per_frame else float("nan")
+            row["frames_with_dropped_pixels"] = int(sum(n > 0 for n in per_frame)) if per_frame else -1
             rows.append(row)
     return pd.DataFrame(rows, columns=SIZE_COLUMNS)
 
@@ -249,6 +278,14 @@ def graph_sizes_markdown(table: pd.DataFrame) -> str:
         same = "" if pd.isna(r.same_graphs_as) else threshold_label(float(r.same_graphs_as))
         lines.append(f"| {f'{r.scenario}: {r.label}' if first else ''} | {threshold_label(float(r.threshold))} | "
                      f"{r.test_nodes:.2f} | {r.test_edges:.2f} | {r.train_nodes:.2f} | {r.train_edges:.2f} | {same} |")
+    if "dropped_pixels" in table and table["dropped_pixels"].notna().any():  # said, never silent
+        per = table.groupby("scenario", sort=False)[["dropped_pixels", "frames_with_dropped_pixels"]].first().dropna()
+        frames = int(table.groupby("scenario", sort=False)["test_graphs"].first().iloc[0]
+                     + table.groupby("scenario", sort=False)["train_graphs"].first().iloc[0])
+        lines += ["", f"**Labelled pixels left out for their depth** (NaN, inf or <= 0; per frame, mean over the "
+                  f"{frames} frames of all splits, and the frames with any): " +
+                  ", ".join(f"{sc} {r.dropped_pixels:.1f} ({int(r.frames_with_dropped_pixels)} frames)"
+                            for sc, r in per.iterrows()) + "."]
     missing = table.groupby("scenario", sort=False)["missing_frames"].max() if "missing_frames" in table else None
     if missing is not None and missing.sum() > 0:  # a real download with files missing: said, never silent
         lines += ["", "**Frames with a missing or unreadable file of the dataset** (each is an empty graph in every "

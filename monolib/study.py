@@ -16,39 +16,12 @@ from pathlib import Path
 from monolib.progress import tqdm
 
 from monolib import methods, paths
+from monolib.grid import CellSpec, grid  # noqa: F401  (the grid: monolib.grid; re-exported)
 from monolib.params import Study, StudyError
 
 log = logging.getLogger(__name__)
 CELL_NOTEBOOK = paths.NOTEBOOKS / "ablation_cell.ipynb"
 REPORT_NOTEBOOK = paths.NOTEBOOKS / "report.ipynb"
-
-
-@dataclass(frozen=True)
-class CellSpec:
-    method: str
-    scenario: str
-    threshold: float
-    seed: int
-
-    @property
-    def name(self) -> str:
-        return f"{self.method}/{self.scenario}__t{paths.threshold_tag(self.threshold)}__s{self.seed}"
-
-
-def grid(study: Study) -> list[CellSpec]:
-    """Every cell of the study: graph methods x scenarios x thresholds x seeds, image methods x seeds."""
-    cells = []
-    for m in study.methods + list(study.variants):
-        if methods.kind(m, study) == "image":
-            cells += [CellSpec(m, "rgb", math.inf, s) for s in study.seeds]
-            continue
-        v = study.variants.get(m)
-        scenarios = (v.scenarios if v and v.scenarios else None) or [
-            n for n, sc in study.scenarios.items() if sc.in_tables or m == "gcn"]
-        for sc in scenarios:
-            thresholds = (v.thresholds if v and v.thresholds else None) or study.scenarios[sc].thresholds or study.thresholds
-            cells += [CellSpec(m, sc, t, s) for t in thresholds for s in study.seeds]
-    return cells
 
 
 def same_graphs(study: Study, cells: list[CellSpec]) -> dict[str, CellSpec]:
@@ -188,9 +161,12 @@ def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int
     papermill into `output`, in a kernel that inherits `env` (`monolib.cluster.task_environment`: the client's
     runs folder and device): the worker's warm kernel (`monolib.kernels`) unless ``MONOLIB_KERNELS=cold``.
     Returns its wall seconds."""
-    from monolib import kernels
+    from monolib import cluster, kernels
 
     t0 = time.perf_counter()
+    if cluster.FINGERPRINT_ENV in env:  # a Dask worker: still the client's code, libraries and study, now?
+        cluster.check_fingerprint(study_file, env[cluster.FINGERPRINT_ENV])
+        env = {k: v for k, v in env.items() if k != cluster.FINGERPRINT_ENV}
     os.environ.update(env)
     execute(CELL_NOTEBOOK, Path(output), {"study": study_file, "method": cell.method, "scenario": cell.scenario,
                                           "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""},
@@ -205,14 +181,18 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
     `monolib.cell.run_cell` one cell after the other in this process, no kernel per cell: what `prepare` does for
     a notebook; the same function computes the same files."""
     from monolib import cluster
-    from monolib.cell import cell_key, copy_cell, is_complete
+    from monolib.cell import cell_key, claim, copy_cell, is_complete, refresh_metrics
 
     def folder(c: CellSpec) -> Path:
         return paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed)
 
     cells = grid(study)
     keys = {c.name: cell_key(study, c.method, c.scenario, c.threshold, c.seed) for c in cells}
-    todo = [c for c in cells if not is_complete(folder(c), keys[c.name])]
+    todo = [c for c in cells if not claim(folder(c), keys[c.name])]  # another key's cell: kept aside, not lost
+    pending = {c.name for c in todo}
+    for c in cells:
+        if c.name not in pending:
+            refresh_metrics(folder(c), study)  # the reported k may have changed: from the rankings, no training
     copies = same_graphs(study, cells) if todo else {}
     run = [c for c in todo if c.name not in copies]
     log.debug("grid: %d cells, %d done, %d to run, %d to copy", len(cells), len(cells) - len(todo), len(run),
@@ -236,6 +216,10 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
                 log.error("cell %s failed: %s: %s", c.name, type(exc).__name__, exc)
     elif run:
         env = cluster.task_environment()
+        if scheduler:  # each task checks, on its worker and before it computes, what decides its numbers
+            import json
+
+            env[cluster.FINGERPRINT_ENV] = json.dumps(cluster.fingerprint(str(study.path)), sort_keys=True)
         with cluster.Workers(study, jobs, scheduler) as workers:
             print(f"cells on {workers.describe()}", flush=True)
             futures = {workers.submit(c.name, run_cell_notebook, study.path, c,
@@ -279,12 +263,18 @@ def prepare(study: Study | str, scenarios: list[str] | None = None, cells: bool 
     cell of the grid (run in this process: `run_grid(in_process=True)`). `scenarios`: names of the study's
     scenarios, default all of them; `rgb` (the scenario of the image-only methods) needs the dataset only.
     Returns the study. Every notebook calls it first, so that it runs on a fresh clone with its defaults."""
-    from monolib import dataset, perception, scenegraphs
-    from monolib.cell import IMAGE_SCENARIO
+    from monolib import locks
     from monolib.params import load_study
 
     if not isinstance(study, Study):
         study = load_study(study)
+    with locks.study_lock(study.dir, study.data_dir):  # the study's lock: held already inside a run's own cells
+        return _prepare(study, scenarios, cells, progress)
+
+
+def _prepare(study: Study, scenarios: list[str] | None, cells: bool, progress: bool) -> Study:
+    from monolib import dataset, perception, scenegraphs
+    from monolib.cell import IMAGE_SCENARIO
     names = list(study.scenarios) + [IMAGE_SCENARIO] if scenarios is None or cells else list(scenarios)
     unknown = [n for n in names if n not in study.scenarios and n != IMAGE_SCENARIO]
     if unknown:
@@ -330,7 +320,15 @@ def write_run_record(study: Study, times: dict, path: Path) -> None:
 
 def run(study: Study, jobs: int | None = None, progress: bool = True, scheduler: str | None = None) -> dict:
     """All stages of a study, each skipped when its results exist. Returns timings per stage. `scheduler`: the
-    address (or scheduler file) of a Dask scheduler whose workers run the cells (`monolib.cluster`)."""
+    address (or scheduler file) of a Dask scheduler whose workers run the cells (`monolib.cluster`). Holds the
+    study's lock (`monolib.locks`): a second run of the same study waits for this one."""
+    from monolib import locks
+
+    with locks.study_lock(study.dir, study.data_dir):
+        return _run(study, jobs, progress, scheduler)
+
+
+def _run(study: Study, jobs: int | None, progress: bool, scheduler: str | None) -> dict:
     from monolib import dataset, fidelity, scenegraphs
 
     check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})

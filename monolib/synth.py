@@ -29,6 +29,7 @@ import math
 import multiprocessing as mp
 import os
 import shutil
+import socket
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -1545,7 +1546,7 @@ def render_setting(s: dict, study_key: dict, width: int, height: int, seed: int,
 def _worker(args):
     s, key, width, height, seed, out_dir = args
     final = Path(out_dir) / s["name"]
-    tmp = Path(out_dir) / f".tmp_{s['name']}_{os.getpid()}"
+    tmp = Path(out_dir) / f".tmp_{s['name']}@{socket.gethostname()}@{os.getpid()}"  # whose render it is
     if tmp.exists():
         shutil.rmtree(tmp)
     try:
@@ -1557,6 +1558,24 @@ def _worker(args):
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
     return info
+
+
+def _abandoned(tmp: Path) -> bool:
+    """A render folder ``.tmp_<setting>@<host>@<pid>`` whose process is gone (on this host: no such pid); one of
+    another host, or of a living process, belongs to another run and stays."""
+    parts = tmp.name.split("@")
+    if len(parts) != 3 or not parts[2].isdigit():
+        return True  # the layout of before (.tmp_<setting>_<pid>): written by a run of older code, long ended
+    host, pid = parts[1], int(parts[2])
+    if host != socket.gethostname():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    except PermissionError:  # a living process of another user
+        return False
+    return False
 
 
 def _finished(final: Path, key: dict) -> Optional[dict]:
@@ -1579,15 +1598,16 @@ def render_dataset(study, out_dir, progress: bool = True) -> Path:
     ds = study.dataset
     W, H = int(ds.width), int(ds.height)
     settings = plan(study)
-    for p in out_dir.glob(".tmp_ai_*"):  # leftovers of a killed run
-        shutil.rmtree(p, ignore_errors=True)
+    for p in out_dir.glob(".tmp_ai_*"):  # leftovers of a killed run: never a render another process is writing
+        if _abandoned(p):
+            shutil.rmtree(p, ignore_errors=True)
     wanted = {s["name"] for s in settings}
     stale = [p for p in out_dir.glob("ai_9[0-9][0-9]_[0-9][0-9][0-9]") if p.is_dir() and p.name not in wanted
              and (p / "_detail" / "monolib_synth_setting.json").is_file()]
-    for p in stale:  # synthetic settings of an earlier, larger study: not part of this dataset
-        shutil.rmtree(p)
-    if stale:
-        print(f"monolib.synth: removed {len(stale)} synthetic settings that are not in this study", flush=True)
+    if stale:  # settings of another study file rendered here (a larger one of the same name): kept, and left out
+        # of this dataset by its split file (metadata_images_split_scene_v1.csv lists this study's settings only)
+        print(f"monolib.synth: {len(stale)} synthetic settings in {out_dir} are not in this study (kept; not read)",
+              flush=True)
     infos: dict[str, dict] = {}
     todo = []
     for s in settings:

@@ -167,11 +167,22 @@ def _protocol_of(t: pd.DataFrame) -> str:
     return str(t["protocol"].iloc[0]) if "protocol" in t.columns and len(t) else PAPER
 
 
-def _caption(metric: str, t: pd.DataFrame, tex: bool = False, n_boot: Optional[int] = None) -> str:
+def protocol_note(name: str, protocol=None) -> str:
+    """The sentence of a table's caption that says how its protocol chose the test settings (`protocol`: the
+    study's `monolib.params.Protocol`, for the ``paper`` protocol on data without families by construction)."""
+    if name == PAPER and protocol is not None and protocol.families is False:
+        return (f"Protocol `paper` (the paper's): {protocol.settings} test settings taken in turn from each volume "
+                "(ai_VVV) in name order, as the paper took 16 settings of a test split of few volumes; a query's "
+                "candidates are its setting's positives and every frame of the other settings.")
+    return PROTOCOL_NOTES.get(name, f"Protocol `{name}`.")
+
+
+def _caption(metric: str, t: pd.DataFrame, tex: bool = False, n_boot: Optional[int] = None,
+             note: Optional[str] = None) -> str:
     pm, inf, dag = (r"$\pm$", r"$\infty$", r"$^\dagger$") if tex else ("±", "∞", DAGGER)
     ours = "Ours: one seed" if set(t["n"]) == {1} else f"Ours: mean {pm} std over seeds, {n_note(t)}"
     protocol = _protocol_of(t)
-    note = PROTOCOL_NOTES.get(protocol, f"Protocol `{protocol}`.")
+    note = note or protocol_note(protocol)
     note = note.replace("`", "").replace("_", r"\_") if tex else note
     if t["paper"].notna().any():
         text = (f"{note} {ours}; paper: the published single-run number "
@@ -212,14 +223,14 @@ def _title(metric: str, t: pd.DataFrame) -> str:
     return TABLES[metric][1] + ("" if protocol == PAPER else f", {protocol} protocol")
 
 
-def _md_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None) -> str:
+def _md_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None, note=None) -> str:
     t, ks, rows = _layout(results, metric, scenario_labels, iv, tests)
     title = _title(metric, t)
     has_paper = t["paper"].notna().any()
     head = ["method", "data", "threshold (m)"] + [f"k={k}" for k in ks]
     if has_paper:
         head += [f"paper k={k}" for k in ks]
-    lines = [f"**{title}.** {_caption(metric, t, n_boot=n_boot)}", "",
+    lines = [f"**{title}.** {_caption(metric, t, n_boot=n_boot, note=note)}", "",
              "| " + " | ".join(head) + " |",
              "|" + "|".join(["---"] * 3 + ["---:"] * (len(head) - 3)) + "|"]
     prev = None
@@ -235,14 +246,14 @@ def _md_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot
     return "\n".join(lines) + "\n"
 
 
-def _tex_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None) -> str:
+def _tex_table(metric: str, results, scenario_labels, iv=None, tests=None, n_boot=None, note=None) -> str:
     t, ks, rows = _layout(results, metric, scenario_labels, iv, tests)
     name, title = TABLES[metric][0] + table_suffix(_protocol_of(t)), _title(metric, t)
     has_paper = t["paper"].notna().any()
     nk = len(ks)
     cols = "lll" + "r" * nk + ("r" * nk if has_paper else "")
     out = [r"\begin{table}[t]", r"\centering", r"\small",
-           rf"\caption{{\textbf{{{_tex(title)}.}} {_caption(metric, t, tex=True, n_boot=n_boot)}}}",
+           rf"\caption{{\textbf{{{_tex(title)}.}} {_caption(metric, t, tex=True, n_boot=n_boot, note=note)}}}",
            rf"\label{{tab:{name}}}", rf"\begin{{tabular}}{{{cols}}}", r"\toprule"]
     group = rf" & & & \multicolumn{{{nk}}}{{c}}{{ours, $k$}}"
     rule = rf"\cmidrule(lr){{4-{3 + nk}}}"
@@ -296,7 +307,7 @@ def table_suffix(protocol: str) -> str:
 def write_tables(results: pd.DataFrame, out_dir: str | Path,
                  scenario_labels: Optional[Mapping[str, str]] = None, intervals: Optional[pd.DataFrame] = None,
                  tests: Optional[pd.DataFrame] = None, n_boot: Optional[int] = None,
-                 protocol: str = PAPER) -> dict[str, Path]:
+                 protocol: str = PAPER, note: Optional[str] = None) -> dict[str, Path]:
     """Write ``table1_recall.{md,csv,tex}`` and ``table2_precision.{md,csv,tex}`` of one protocol into `out_dir`
     (the ``paper`` protocol; another protocol's files end in ``_<protocol>``: ``table1_recall_siblings.md``, keys
     ``table1_siblings_md``...). `results` (`monolib.results.collect`), `intervals` and `tests`
@@ -307,7 +318,8 @@ def write_tables(results: pd.DataFrame, out_dir: str | Path,
     95 % bootstrap interval ``[lo, hi]``; with `tests` (see `monolib.statistics.threshold_tests`) a dagger on
     thresholds significantly below the best) then the paper's published number for the GCN rows. Best mean per
     (method, scenario, k) in bold (compared at the printed precision). The csv has ``method, scenario, threshold,
-    k, mean, std, n, [ci_lo, ci_hi,] paper[, worse_than_best]``. Returns ``{"table1_md": path, ...}``.
+    k, mean, std, n, [ci_lo, ci_hi,] paper[, worse_than_best]``. `note`: the caption's sentence on how the
+    protocol chose its settings (default: `protocol_note` of `protocol`). Returns ``{"table1_md": path, ...}``.
     """
     out_dir = Path(out_dir)
     labels = dict(scenario_labels or {})
@@ -319,9 +331,9 @@ def write_tables(results: pd.DataFrame, out_dir: str | Path,
             log.warning("no %s numbers in the results: %s not written", metric, name)
             continue
         short = name.split("_")[0] + table_suffix(protocol)
-        for ext, text in (("md", _md_table(metric, results, labels, intervals, tests, n_boot)),
+        for ext, text in (("md", _md_table(metric, results, labels, intervals, tests, n_boot, note)),
                           ("csv", _csv_table(metric, results, intervals, tests)),
-                          ("tex", _tex_table(metric, results, labels, intervals, tests, n_boot))):
+                          ("tex", _tex_table(metric, results, labels, intervals, tests, n_boot, note))):
             path = out_dir / f"{name}.{ext}"
             io.write_text(path, text)
             written[f"{short}_{ext}"] = path

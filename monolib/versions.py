@@ -20,9 +20,11 @@ from monolib import paths
 # The modules whose code decides each stage's output (the stage's own module and the ones it computes with).
 STAGE_MODULES = {
     "dataset": ["synth", "hypersim", "labels"],
-    "perception": ["perception", "segmentation", "depth", "imagenet", "zoo", "dataset", "retrieval", "hypersim", "labels"],
-    "graphs": ["scenegraphs", "graph", "dataset", "retrieval", "hypersim", "published", "methods", "labels"],
-    "cells": ["cell", "gcn", "baselines", "retrieval", "methods", "graph", "dataset", "hypersim", "labels"],
+    "perception": ["perception", "segmentation", "depth", "imagenet", "zoo", "manifests", "weights", "dataset",
+                   "protocols", "retrieval", "hypersim", "labels"],
+    "graphs": ["scenegraphs", "graph", "dataset", "protocols", "retrieval", "hypersim", "published", "methods",
+               "labels"],
+    "cells": ["cell", "gcn", "baselines", "protocols", "retrieval", "methods", "graph", "dataset", "hypersim", "labels"],
 }
 # What a stage's modules may import beyond their own list (`tests/test_cache.py` holds every import to this):
 # upstream stages, whose keys are part of this stage's key; infrastructure that computes no number; and the
@@ -30,8 +32,38 @@ STAGE_MODULES = {
 # tables). A new import outside these makes that test fail: add the module to the stage's list or here, with reason.
 UPSTREAM = {"dataset": [], "perception": ["dataset"], "graphs": ["dataset", "perception"],
             "cells": ["dataset", "perception", "graphs"]}
-INFRASTRUCTURE = ["io", "paths", "params", "device", "versions", "progress"]
-PRESENTATION = ["report", "results", "statistics", "tables", "plots", "figures", "study", "viz", "fidelity", "readme"]
+INFRASTRUCTURE = ["io", "paths", "params", "errors", "device", "versions", "progress", "locks"]
+PRESENTATION = ["report", "results", "statistics", "tables", "plots", "figures", "study", "grid", "viz", "fidelity",
+                "readme"]
+
+
+# The libraries whose versions decide each stage's numbers: part of the stage's key, next to its code's version.
+STAGE_LIBRARIES = {
+    "dataset": ["numpy", "trimesh", "embreex", "h5py"],
+    "perception": ["torch", "torchvision", "timm", "segmentation_models_pytorch", "numpy"],
+    "graphs": ["numpy", "torch"],
+    "cells": ["torch", "torch_geometric", "numpy", "opencv-python-headless", "torchvision"],
+}
+# Functions of a stage's module that draw or show and compute no cached output: left out of its version, so that
+# a change to a figure does not recompute the stage.
+PRESENTATION_FUNCTIONS = {
+    "perception": {"plot_training", "plot_depth_examples", "plot_semantic_examples", "draw_figures", "wide",
+                   "_write_if_changed"},
+}
+
+
+@functools.lru_cache(maxsize=None)
+def library_versions(stage: str) -> dict:
+    """``{distribution: version or None}`` of `STAGE_LIBRARIES[stage]`."""
+    from importlib import metadata
+
+    out = {}
+    for name in STAGE_LIBRARIES[stage]:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
 
 
 def _strip_docstrings(tree: ast.AST) -> ast.AST:
@@ -52,9 +84,15 @@ def source_version(source: str, filename: str = "<source>") -> str:
 
 @functools.lru_cache(maxsize=None)
 def module_version(module: str) -> str:
-    """`source_version` of one module (``monolib/<module>.py``)."""
+    """`source_version` of one module (``monolib/<module>.py``), its `PRESENTATION_FUNCTIONS` left out."""
     path = paths.PACKAGE / f"{module}.py"
-    return source_version(path.read_text(), str(path))
+    text = path.read_text()
+    drop = PRESENTATION_FUNCTIONS.get(module)
+    if drop:
+        tree = ast.parse(text, str(path))
+        tree.body = [n for n in tree.body if not (isinstance(n, ast.FunctionDef) and n.name in drop)]
+        text = ast.unparse(tree)
+    return source_version(text, str(path))
 
 
 @functools.lru_cache(maxsize=None)

@@ -25,88 +25,15 @@ from pathlib import Path
 from typing import Optional
 
 from monolib import io, paths
+from monolib.manifests import (STAGING, WeightsError, architecture, check_architecture,  # noqa: F401
+                               manifest_path, read_manifest)
+from monolib.weights import load  # noqa: F401  (re-exported: zoo.load)
 from monolib.params import Study, StudyError, resolve_path
 
 ZOO_DIR = paths.DATA / "zoo"
 
 
-class WeightsError(StudyError):
-    """Shipped weights that are missing, altered, or of another architecture than the study's spec."""
-
-
-def architecture(spec, task: str) -> dict:
-    """What a weights file must match to load into the network a spec builds."""
-    from monolib.labels import NUM_CLASSES
-
-    if task == "segmentation":
-        return {"model": "deeplabv3", "backbone": spec.backbone, "classes": NUM_CLASSES,
-                "input_size": [spec.train_height, spec.train_width]}
-    return {"model": "leres_log_depth", "backbone": spec.backbone, "decoder_width": spec.decoder_width,
-            "input_size": [spec.train_height, spec.train_width]}
-
-
 sha256 = io.sha256
-
-
-def manifest_path(weights: Path) -> Path:
-    return Path(weights).with_suffix(".json")
-
-
-def read_manifest(weights: Path, where: str = "weights") -> dict:
-    """The manifest beside a weights file; `WeightsError` naming the file when it is absent or unreadable."""
-    weights = Path(weights)
-    m = manifest_path(weights)
-    if not weights.is_file():
-        raise WeightsError(f"{where}: file not found: {weights} (make it with `make zoo`)")
-    try:
-        manifest = io.read_json_dict(m, ("sha256", "architecture", "task"))
-    except FileNotFoundError:
-        raise WeightsError(f"{where}: {weights} has no manifest {m.name} beside it (shipped weights come with one)") from None
-    except ValueError as exc:
-        raise WeightsError(f"{m}: not a weights manifest ({exc})") from None
-    return manifest
-
-
-def check_architecture(spec, task: str, weights: Path, where: str = "weights") -> dict:
-    """`WeightsError` when the manifest's architecture is not the one `spec` builds (no file hashing: cheap)."""
-    manifest = read_manifest(weights, where)
-    want, have = architecture(spec, task), manifest["architecture"]
-    if manifest["task"] != task or want != have:
-        diff = {k: (have.get(k), want.get(k)) for k in sorted(set(want) | set(have)) if have.get(k) != want.get(k)}
-        raise WeightsError(f"{where}: {weights} holds a {manifest['task']} network {have}, the study's spec builds "
-                           f"a {task} network {want} (differing: " +
-                           ", ".join(f"{k} file {a!r} spec {b!r}" for k, (a, b) in diff.items()) + ")")
-    return manifest
-
-
-def load(spec, task: str, weights: str | Path, study_path: Optional[str] = None, manifest: Optional[dict] = None):
-    """The network of `spec` with the shipped weights (float32, on `monolib.device.device()`), after checking the
-    file's sha256 against its manifest (the one beside it, or `manifest`) and its architecture against the spec."""
-    import torch
-
-    from monolib import depth as dep
-    from monolib import segmentation as seg
-
-    path = resolve_path(str(weights), study_path)
-    where = f"perception model {spec.name!r} weights"
-    if manifest is None:
-        manifest = check_architecture(spec, task, path, where)
-    digest = sha256(path)
-    if digest != manifest["sha256"]:
-        raise WeightsError(f"{where}: {path} has sha256 {digest[:16]}..., its manifest {manifest_path(path).name} "
-                           f"says {manifest['sha256'][:16]}...: the file is not the one the manifest describes "
-                           f"(altered or cut short); restore it from git or re-make it with `make zoo`")
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    state = {k: (v.float() if v.is_floating_point() else v) for k, v in blob["state_dict"].items()}
-    plain = dataclasses.replace(spec, pretrained=False) if dataclasses.is_dataclass(spec) else spec
-    model = seg.build_model(plain) if task == "segmentation" else dep.build_model(plain)
-    try:
-        model.load_state_dict(state, strict=True)
-    except RuntimeError as exc:
-        raise WeightsError(f"{where}: {path} does not fit the network of the spec: {str(exc)[:300]}") from None
-    from monolib.device import device
-
-    return model.to(device()).eval()
 
 
 def export(model, spec, task: str, out: Path, info: dict) -> dict:
@@ -172,9 +99,10 @@ def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: boo
     a run killed during evaluation or export resumes from that file without training again. After every epoch the
     network is measured on the evaluation study's test split too (the learning curve: accuracy against CPU
     minutes, recorded in the manifest's ``curve``; model selection uses the zoo's own validation settings only).
-    The weights and their manifest are written as a pair: both to temporary names first, then renamed, the
-    manifest last, so a kill leaves either the old pair or the new weights beside a manifest that `load` refuses
-    (sha256) and the next `make zoo` rewrites.
+    The weights and their manifest are written as a pair: both into ``.staging/`` first, then moved into place,
+    the weights first; a kill between the two moves leaves the new manifest in ``.staging/``, and the next reader
+    of that pair moves it into place (`manifests.finish_pending_pair`), so a study never sees new weights beside an
+    old manifest.
     """
     import numpy as np
 
@@ -232,7 +160,7 @@ def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: boo
                 "val_frames": len(sel.val), "epochs": len(history["epochs"]), "best_epoch": history.get("best_epoch"),
                 "train_seconds": round(train_seconds, 1), "threads": zoo.perception.threads, "curve": curve,
                 **_machine()}
-        stage = out / ".staging"
+        stage = out / STAGING
         manifest = export(model, spec, task, stage, info)
         shipped = load(spec, task, stage / f"{name}.pt", manifest=manifest)  # the metrics of the file that ships
         metrics = _test_metrics(shipped, task, test, images)

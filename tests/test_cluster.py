@@ -148,14 +148,67 @@ def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_fi
     assert again.returncode == 0 and "4 already complete, 0 to run" in again.stdout, again.stdout[-2000:]
 
 
-def test_workers_that_run_other_code_are_refused_before_any_cell(scheduler_file, tmp_path, monkeypatch):
-    from monolib import cluster, versions
+def _changed(part: str):
+    """A `fingerprint` function of this side only, one part changed: the workers keep the real one."""
+    from monolib import cluster
+
+    real = cluster.fingerprint
+
+    def fake(study_file):
+        f = real(study_file)
+        if part == "code":
+            f["code"]["graphs"] = "another version"
+        elif part == "library":
+            f["libraries"]["torch_geometric"] = "0.0.1"
+        else:
+            f["study"] = "another study"
+        return f
+    return fake
+
+
+WORDS = {"code": "code of the graphs stage", "library": r"torch_geometric \S+ \(client 0.0.1\)",
+         "study": "the study as loaded"}
+
+
+@pytest.mark.parametrize("part", sorted(WORDS))
+def test_workers_that_compute_otherwise_are_refused_before_any_cell(scheduler_file, tmp_path, monkeypatch, part):
+    """Any stage's code (not only the cells'), a library's version, or the study as loaded (its `extends` base
+    resolved): each is one problem per worker, before any cell."""
+    from monolib import cluster
 
     study_file = ground_truth_study(tmp_path, "smoke_dask_refused", [1], [0])
-    monkeypatch.setattr(versions, "code_version", lambda stage: "another version")  # this side only
-    with pytest.raises(StudyError, match=r"2 problem\(s\) with the workers:(\n  tcp://127.0.0.1:\d+: runs other "
-                                         r"monolib code .*){2}"):
+    monkeypatch.setattr(cluster, "fingerprint", _changed(part))
+    with pytest.raises(StudyError, match=rf"2 problem\(s\) with the workers:(\n  tcp://127.0.0.1:\d+: computes cells "
+                                         rf"otherwise: {WORDS[part]}.*){{2}}"):
         cluster.connect(str(scheduler_file), load_study(str(study_file)))
+
+
+@pytest.mark.parametrize("part", sorted(WORDS))
+def test_each_task_checks_its_worker_again_before_it_computes(tmp_path, part):
+    """What a worker computes with may change after the connection check (a `git pull` on a shared file system, a
+    library upgraded under a running worker): the task compares afresh and refuses before the notebook runs."""
+    import json
+
+    from monolib import cluster, study
+
+    study_file = ground_truth_study(tmp_path, "smoke_dask_task", [1], [0])
+    client_side = json.dumps(_changed(part)(str(study_file)))
+    env = {**cluster.task_environment(), cluster.FINGERPRINT_ENV: client_side}
+    out = tmp_path / "cell.ipynb"
+    with pytest.raises(StudyError, match=rf"no longer computes cells as the client: {WORDS[part]}"):
+        study.run_cell_notebook(str(study_file), study.CellSpec("gcn", "s1", 1.0, 0), str(out), 60, env)
+    assert not out.exists()                                          # refused before the notebook ran
+    cluster.check_fingerprint(str(study_file), json.dumps(cluster.fingerprint(str(study_file))))  # the same: passes
+
+
+@pytest.mark.parametrize("value, words", [("no_such_scheduler.json", "neither a scheduler file (no such file) nor "
+                                           "an address"), ("tcp://127.0.0.1", "expected an address with a port")])
+def test_a_bad_scheduler_value_is_one_clear_error(tmp_path, value, words):
+    study_file = ground_truth_study(tmp_path, "smoke_dask_bad", [1], [0])
+    out = subprocess.run(MONOLIB + ["study", str(study_file), "--scheduler", value], env=ENV, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 2 and out.stderr.startswith(f"error: --scheduler {value}: {words}"), out.stderr[-2000:]
+    assert "Traceback" not in out.stderr
 
 
 def test_no_scheduler_at_the_address_is_one_clear_error(tmp_path):

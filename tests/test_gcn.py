@@ -241,3 +241,19 @@ def test_the_sparse_adjacency_gives_what_gcnconv_computes_from_the_edge_list(edg
         from torch_geometric.nn import global_max_pool
         want = global_max_pool(model.lin(h), batch.batch)
     assert torch.allclose(got, want, atol=1e-5), (got - want).abs().max()
+
+
+def test_the_edge_list_path_of_devices_without_sparse_products_gives_the_same_embeddings(monkeypatch):
+    """Where torch has no sparse CSR product (`meta`, some backends) the encoder propagates over the edge list with
+    the same normalised weights: the same embeddings up to float rounding."""
+    from torch_geometric.data import Batch
+
+    from monolib import gcn
+
+    model = GraphEncoder(GCNSpec()).eval()
+    batch = Batch.from_data_list(toy_graphs(3, 2))
+    with torch.no_grad():
+        sparse = model(batch)
+        monkeypatch.setattr(gcn, "SPARSE_DEVICES", ())
+        edges = model(batch)
+    assert torch.allclose(sparse, edges, atol=1e-5) and not torch.equal(sparse, torch.zeros_like(sparse))

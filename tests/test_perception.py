@@ -364,6 +364,24 @@ def test_loader_workers_change_no_prediction(tiny_study):
         in_workers = _read_predictions(tiny_study, name, frames)
         assert len({p.tobytes() for p in in_main}) > 1  # different frames, different predictions
         assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(in_main, in_workers)), name
+        assert_each_frame_has_its_own_prediction(task, model, frames, in_workers)
+
+
+def assert_each_frame_has_its_own_prediction(task, model, frames, stored):
+    """Each stored prediction is the model's prediction of that frame alone (a batch of one: equal up to the last
+    bits that a batch's size moves on the CPU), and not another frame's: a prediction written to the wrong frame's
+    file, after the first batch or anywhere, fails here."""
+    from monolib import depth, segmentation
+
+    predict = segmentation.predict if task == "segmentation" else depth.predict
+    for i, (f, got) in enumerate(zip(frames, stored)):
+        alone = predict(model, np.stack([f.rgb]), 1)[0]
+        if task == "segmentation":
+            assert np.mean(alone == got) > 0.999, (task, i)
+        else:
+            assert np.allclose(alone, got, rtol=1e-4, atol=1e-5), (task, i, float(np.abs(alone - got).max()))
+        others = [j for j in range(len(frames)) if not np.array_equal(stored[j], got)]
+        assert others, (task, i)  # (every frame differs from some other: the comparison can tell them apart)
 
 
 def test_a_stopped_run_predicts_only_the_missing_frames(tiny_study, monkeypatch):
@@ -425,7 +443,8 @@ def test_predict_takes_a_tensor_batch_as_it_takes_numpy(tiny_study):
 
 def test_float16_only_on_cuda_and_in_the_key_only_there(tiny_study, monkeypatch):
     """`amp` is float16 autocast on CUDA, float32 on the CPU; it enters the model's key only on CUDA (the CPU's
-    predictions, and its keys, do not depend on it). The batch and the loader workers are never in the key."""
+    predictions, and its keys, do not depend on it). The loader workers are never in the key; the batch always is
+    (a prediction's last bits depend on it on the CPU)."""
     import monolib.device
     from monolib import perception, segmentation
 
@@ -445,14 +464,14 @@ def test_float16_only_on_cuda_and_in_the_key_only_there(tiny_study, monkeypatch)
     def keys(dev):
         monkeypatch.setattr(monolib.device, "device", lambda: dev)
         out = []
-        for amp, batch, workers in [(True, 8, 2), (False, 8, 2), (True, 3, 0)]:
+        for amp, batch, workers in [(True, 8, 2), (False, 8, 2), (True, 8, 0), (True, 3, 2)]:
             spec.amp, spec.predict_batch, spec.loader_workers = amp, batch, workers
             out.append(perception.model_key(tiny_study, name))
         return out
 
     on_cpu, on_cuda = keys(cpu), keys(cuda)
-    assert on_cpu[0] == on_cpu[1] == on_cpu[2]
-    assert on_cuda[0] != on_cuda[1] and on_cuda[0] == on_cuda[2] and on_cuda[1] != on_cpu[1]
+    assert on_cpu[0] == on_cpu[1] == on_cpu[2] != on_cpu[3]
+    assert on_cuda[0] != on_cuda[1] and on_cuda[0] == on_cuda[2] != on_cuda[3] and on_cuda[1] != on_cpu[1]
 
 
 class _nothing:

@@ -215,8 +215,9 @@ def test_the_real_published_sample():
 
 
 def test_published_test_settings_follow_both_protocols(tmp_path):
-    """Published graphs are selected by the same rule as a dataset: paper = one setting per volume (family),
-    siblings = both settings of a volume; a volume with one setting cannot give a sibling pair."""
+    """Published graphs are selected by the rule of a dataset: paper = settings in turn from each volume (here one
+    per volume, there being as many volumes as settings), siblings = both settings of a volume; a volume with one
+    setting cannot give a sibling pair."""
     rng = np.random.default_rng(2)
     write_folder(tmp_path / "graphs" / "train", [f"00{i}001" for i in range(1, 4)], 3, rng)
     write_folder(tmp_path / "graphs" / "test", ["011001", "011002", "012001", "013001", "013002"], 4, rng)
@@ -234,3 +235,50 @@ def test_published_test_settings_follow_both_protocols(tmp_path):
     p.write_text(yaml.safe_dump(study))
     with pytest.raises(ValueError, match="families without a sibling: ai_012"):
         published.select(load_study(p))
+
+
+def test_a_release_of_three_volumes_gives_the_paper_protocol_its_16_settings(tmp_path, monkeypatch):
+    """The original release's test split: 50 files of 39 settings from three volumes only (ai_024, ai_026,
+    ai_027; 11 settings with a second camera), each setting with 41 frames or more. The paper took 16 settings of
+    it; here the `paper` protocol takes them in turn from each volume (6, 5, 5), a cell runs on them, and the
+    table caption says how they were chosen. On the mini-Hypersim (families by construction) the rule of
+    different families stays: the same names there are refused."""
+    rng = np.random.default_rng(3)
+    test = tmp_path / "graphs" / "test"
+    test.mkdir(parents=True)
+    settings = [f"{v}{n:03d}" for v, count in (("024", 13), ("026", 13), ("027", 13)) for n in range(1, count + 1)]
+    for k, s in enumerate(settings):
+        cams = ["00", "01"] if k % 4 == 0 else ["00"]  # 10 settings x 2 cameras + 29 x 1 = 49 files
+        cams += ["02"] if k == 1 else []                          # and one third camera: 50 files
+        for c, cam in enumerate(cams):
+            graphs = [published_graph(s, cam, f, int(rng.integers(1, 6)), rng) for f in range(41 if c == 0 else 8)]
+            torch.save(graphs, test / f"ai_{s[:3]}_{s[3:]}_{cam}_graphs.pt")
+    assert len(list(test.iterdir())) == 50
+    write_folder(tmp_path / "graphs" / "train", [f"0{i:02d}001" for i in range(1, 6)], 6, rng)
+    from monolib import cell, paths, tables
+    from monolib.retrieval import ProtocolDataError, protocol_settings
+
+    study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
+    study.update(name="published_release", graphs_root=str(tmp_path / "graphs"), seeds=[0], thresholds=[1])
+    study.pop("variants")
+    study["gcn"].update(epochs=1, val_settings=1)
+    p = tmp_path / "study.yaml"
+    p.write_text(yaml.safe_dump(study))
+    s = load_study(p)
+    assert s.protocol.settings == 16 and s.protocol.families is False      # published.yaml as shipped
+    chosen = sorted({g.setting for g in published.select(s)["test"]})
+    assert len(chosen) == 16
+    assert [sum(c.startswith(f"ai_{v}_") for c in chosen) for v in ("024", "026", "027")] == [6, 5, 5]
+    assert chosen[:3] == ["ai_024_001", "ai_024_002", "ai_024_003"]
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    result = cell.run_cell(s, "gcn", "s1", 1.0, 0, out_dir=str(tmp_path / "cell"))
+    assert list(result["metrics"]) == ["paper"]
+    import pandas as pd
+
+    drawn = pd.read_csv(tmp_path / "cell" / "protocol.csv")  # the cell drew its queries from those 16 settings
+    assert sorted(drawn["setting"].unique()) == chosen
+    assert "16 test settings taken in turn from each volume" in tables.protocol_note("paper", s.protocol)
+    # the mini-Hypersim's rule on the same names: one setting per family, refused with three families
+    s.protocol.families = True
+    with pytest.raises(ProtocolDataError, match="found 3 families among 39 such settings"):
+        protocol_settings([f"ai_{x[:3]}_{x[3:]}" for x in settings], s.protocol)

@@ -658,3 +658,43 @@ def test_paper_numbers_of_a_two_protocol_study_ignore_the_siblings(two, tmp_path
     only = report.write_report(two, n_boot=200)
     assert only["table1_md"].read_text() == paper_md
     assert "table1_siblings_md" not in only
+
+
+def test_the_report_reads_the_cells_of_the_grid_and_says_how_many_it_left_out(study, tmp_path, caplog):
+    """A study file that lists one seed and two thresholds of the fixture's cells (seeds 0, 1; thresholds 1, 5,
+    inf): the other cells stay on disk and out of every table, and the report names how many it left out; with
+    those cells deleted, the same bytes."""
+    import shutil
+
+    import yaml
+
+    spec = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    spec.update(name=study, thresholds=[1, ".inf"], seeds=[0], methods=["gcn", "color_hist"])
+    spec["scenarios"] = {k: v for k, v in spec["scenarios"].items() if k in ("s1", "s2")}
+    spec.pop("variants", None)
+    path = tmp_path / "fake.yaml"
+    path.write_text(yaml.safe_dump(spec).replace("'.inf'", ".inf"))
+    from monolib.params import load_study
+
+    s = load_study(path, check_files=False)
+    with caplog.at_level("WARNING", logger="monolib.report"):
+        written = report.write_report(study, fake_rgb, LABELS, study=s)
+    assert any("9 cells outside the study's grid left out" in r.getMessage() for r in caplog.records), caplog.text
+    numbers = pd.read_csv(written["results"])
+    assert set(numbers["seed"]) == {0} and set(numbers["threshold"]) == {1.0, math.inf}
+    assert len(numbers) == 5 * 6                                     # 4 gcn cells + 1 baseline, 6 numbers each
+    before = {k: p.read_bytes() for k, p in written.items()}
+    outside = results.left_out(study, grid_names(s))
+    assert len(outside) == 9 and all(f.is_file() for f in outside)  # kept on disk
+    for f in outside:
+        shutil.rmtree(f.parent)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="monolib.report"):
+        again = report.write_report(study, fake_rgb, LABELS, study=s)
+    assert {k: p.read_bytes() for k, p in again.items()} == before and "left out" not in caplog.text
+
+
+def grid_names(s):
+    from monolib import grid
+
+    return grid.names(s)

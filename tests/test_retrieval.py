@@ -118,6 +118,26 @@ def test_protocol_settings_paper_families_differ_and_siblings_are_pairs(names, s
     assert protocol_settings(union, pr) == chosen
 
 
+@pytest.mark.parametrize("settings, siblings", [(3, 0), (4, 0), (7, 0), (9, 0), (5, 2), (4, 1)])
+def test_protocol_settings_in_turn_from_each_family_on_real_data(settings, siblings):
+    """`families: false` (real Hypersim, published graphs): the first setting of each family, then the second of
+    each, ... so that no family holds two settings more than another; where there are as many families as
+    settings, the same choice as the rule of different families; and the rule applied to the union of its own
+    choice gives that choice again."""
+    names = [f"ai_{v}_{n:03d}" for v, count in (("024", 4), ("026", 3), ("027", 2)) for n in range(1, count + 1)]
+    pr = Protocol(settings=settings, siblings=siblings, families=False)
+    chosen = protocol_settings(names[::-1], pr)
+    counts = [sum(family(c) == f for c in chosen["paper"]) for f in ("ai_024", "ai_026", "ai_027")]
+    assert len(chosen["paper"]) == settings and max(counts) - min(counts) <= 1 or counts[2] == 2, counts
+    assert all(f"ai_{v}_001" in chosen["paper"] for v in ("024", "026", "027"))
+    if settings == 3:
+        assert chosen == protocol_settings(names, Protocol(settings=3, siblings=siblings, families=True))
+    union = sorted(set().union(*chosen.values()))
+    assert protocol_settings(union, pr) == chosen
+    with pytest.raises(ProtocolDataError, match=r"paper protocol needs 10 test settings.*found 9"):
+        protocol_settings(names, Protocol(settings=10, families=False))
+
+
 def test_protocol_settings_name_what_is_missing():
     with pytest.raises(ProtocolDataError, match=r"paper protocol needs 5 test settings of different families.*"
                                                 r"protocol.settings.*found 4 families"):

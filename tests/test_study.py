@@ -236,6 +236,15 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
         assert all(m["setting"] in settings for m in r["matches"])
         assert len({m["setting"] for m in r["matches"]}) == 3
         assert all(a["distance"] <= b["distance"] for a, b in zip(r["matches"], r["matches"][1:]))
+    # the RGB of a frame of the database, lossless at its own size: that frame comes first, far ahead of the next
+    # (a localizer that ranked anything but the query's own scene graph first would fail here)
+    same = tmp_path / "same.png"
+    cv2.imwrite(str(same), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+    out = subprocess.run(MONOLIB + ["localize", str(same), "--db", str(db), "--k", "3", "--json"], env=ENV,
+                         capture_output=True, text=True)
+    first, second = json.loads(out.stdout)[0]["matches"][:2]
+    assert first["frame"] == frame.key and first["setting"] == frame.setting, first
+    assert first["distance"] < 0.5 * second["distance"], (first, second)
     table = subprocess.run(MONOLIB + ["localize", str(png), "--db", str(db)], env=ENV, capture_output=True, text=True)
     assert table.returncode == 0 and "1. ai_" in table.stdout
     # one clear error each: a wrong path, an unreadable image, a database made by other models

@@ -1,0 +1,122 @@
+"""One runs folder, many runs: two study files of one name and different GCN settings, one after the other and at
+once, both keep their cells; a second run of a study waits for the first; a render never deletes another
+process's work. (Issue: shared runs folders.)"""
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+from monolib import cell, locks, paths, synth
+from monolib.params import load_study
+
+pytestmark = pytest.mark.slow
+NAME = "smoke_shared"
+
+
+def study_file(tmp_path: Path, tag: str, epochs: int) -> Path:
+    """The smoke study's ground-truth scenario over its dataset, one cell, under one name for every `tag`."""
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data.update(name=NAME, thresholds=[1], seeds=[0], methods=["gcn"], scenarios={"s1": data["scenarios"]["s1"]})
+    data["dataset"]["root"] = str(load_study("smoke").dataset_root)
+    data["gcn"]["epochs"] = epochs
+    path = tmp_path / f"{tag}.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def folder() -> Path:
+    return paths.cell_dir(NAME, "gcn", "s1", 1.0, 0)
+
+
+def record(path: Path) -> dict:
+    return json.loads((path / "cell.json").read_text())
+
+
+@pytest.fixture
+def two(smoke_study, tmp_path):
+    subprocess.run(["rm", "-rf", str(paths.study_dir(NAME))], check=True)
+    a, b = study_file(tmp_path, "a", 2), study_file(tmp_path, "b", 3)
+    keys = {p: cell.cell_key(load_study(p), "gcn", "s1", 1.0, 0) for p in (a, b)}
+    assert keys[a] != keys[b]
+    yield a, b, keys
+    subprocess.run(["rm", "-rf", str(paths.study_dir(NAME))], check=True)
+
+
+def test_two_study_files_of_one_name_one_after_the_other_keep_both_cells(two):
+    from monolib.study import prepare
+
+    a, b, keys = two
+    prepare(str(a), cells=True, progress=False)
+    assert record(folder())["key"] == keys[a]
+    made_a = (folder() / "model.pt").read_bytes()
+    prepare(str(b), cells=True, progress=False)
+    assert record(folder())["key"] == keys[b]                   # b's cell in the folder the report reads
+    kept = cell.aside(folder(), keys[a])
+    assert record(kept)["key"] == keys[a] and (kept / "model.pt").read_bytes() == made_a   # a's: kept, whole
+    stamp = (kept / "cell.json").stat().st_mtime_ns
+    prepare(str(a), cells=True, progress=False)                  # a again: its cell moves back, nothing recomputed
+    assert record(folder())["key"] == keys[a] and (folder() / "cell.json").stat().st_mtime_ns == stamp
+    assert record(cell.aside(folder(), keys[b]))["key"] == keys[b]
+
+
+def test_two_study_files_of_one_name_at_once_both_finish_and_keep_their_cells(two):
+    """Started together: the second waits for the first (one line naming it), then runs; both cells remain."""
+    a, b, keys = two
+    code = "import sys; from monolib.study import prepare; prepare(sys.argv[1], cells=True, progress=False)"
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(p)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                              text=True, env={**os.environ, "MPLBACKEND": "agg"}) for p in (a, b)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
+    waited = [o[1] for o in outs if "in use by pid" in o[1]]
+    assert len(waited) == 1 and "waiting for it to finish" in waited[0], [o[1][-1000:] for o in outs]
+    found = {record(f)["key"] for f in (folder(), *cell.aside(folder(), "x").parent.glob(folder().name + "@*"))}
+    assert found == set(keys.values())
+
+
+def test_a_second_lock_names_the_first_and_a_killed_holder_leaves_none(tmp_path):
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
+                               "from monolib import locks\nwith locks.study_lock(Path(sys.argv[1])):\n"
+                               "    print('held', flush=True); time.sleep(600)", str(tmp_path)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(locks.RunInProgress, match=rf"in use by pid {holder.pid} on {socket.gethostname()}"):
+            with locks.study_lock(tmp_path, wait=False):
+                pass
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    with locks.study_lock(tmp_path, wait=False):  # the kernel dropped the dead holder's lock
+        with locks.study_lock(tmp_path, wait=False):  # and a lock is re-entrant within its process
+            assert str(tmp_path.resolve()) in os.environ[locks.ENV]
+    assert str(tmp_path.resolve()) not in os.environ.get(locks.ENV, "")
+
+
+def test_a_render_removes_only_the_leftovers_of_ended_processes(smoke_study):
+    """`render_dataset` on a rendered dataset beside a render in progress (a living process of this host), one of
+    another host, and the leftovers of an ended process and of older code: only the last two go."""
+    host = socket.gethostname()
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    s = load_study("smoke")
+    root = s.dataset_root
+    cases = {f".tmp_ai_900_001@{host}@{os.getpid()}": True,       # stays: a living process of this host
+             f".tmp_ai_900_002@another-host@{os.getpid()}": True,  # stays: another machine's
+             f".tmp_ai_900_003@{host}@{dead.pid}": False,          # goes: an ended process
+             ".tmp_ai_900_004_12345": False}                       # goes: the layout of older code
+    try:
+        for name in cases:
+            (root / name).mkdir()
+            (root / name / "part.hdf5").write_bytes(b"half a render")
+        synth.render_dataset(s, root, progress=False)
+        assert {name: (root / name).is_dir() for name in cases} == cases
+    finally:
+        for name in cases:
+            subprocess.run(["rm", "-rf", str(root / name)], check=True)
