@@ -521,3 +521,31 @@ def test_smoke_study_rerun_is_cached(capsys):
     out = capsys.readouterr().out
     assert set(again.attrs["status"].values()) == {"cached"}
     assert f"perception: {perception.model_tag(study, 'deeplab')} cached" in out and "nothing to do" in out
+
+
+def test_a_depth_network_predicting_nan_is_an_error_not_a_cached_model(tiny_study, monkeypatch):
+    """A depth network whose predictions are NaN for 90% of the pixels: its abs_rel on the other 10% could look
+    good, so the stage stops with one error naming it, and nothing marks it done (no metrics, no `_complete`);
+    a sound network's share (0) is in the perception table."""
+    from monolib import depth, perception
+
+    name = tiny_study.perception.depth[0].name
+    real = depth.predict
+
+    def mostly_nan(model, rgb, *args, **kwargs):
+        out = real(model, rgb, *args, **kwargs)
+        out[:, : int(0.9 * out.shape[1])] = np.nan
+        return out
+
+    monkeypatch.setattr(depth, "predict", mostly_nan)
+    with pytest.raises(perception.NonFiniteDepth, match=rf"perception model '{name}'.*8\d\.\d+% of its predicted "
+                                                        r"test pixels are NaN or inf"):
+        perception.run(tiny_study, progress=False, only=[name])
+    assert not (perception.model_dir(tiny_study, name) / "metrics.json").exists()
+    assert not (perception.predictions_dir(tiny_study, name) / "_complete.json").exists()
+    monkeypatch.setattr(depth, "predict", real)
+    for f in perception.predictions_dir(tiny_study, name).rglob("*.hdf5"):
+        f.unlink()
+    table = perception.run(tiny_study, progress=False, only=[name])
+    share = table[(table.model == name) & (table.metric == "nonfinite_share")]["value"]
+    assert len(share) == 1 and share.iloc[0] == 0.0

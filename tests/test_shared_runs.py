@@ -120,3 +120,34 @@ def test_a_render_removes_only_the_leftovers_of_ended_processes(smoke_study):
     finally:
         for name in cases:
             subprocess.run(["rm", "-rf", str(root / name)], check=True)
+
+
+def test_the_graph_stage_counts_the_labelled_pixels_it_drops_for_their_depth(smoke_study, monkeypatch):
+    """A depth source with NaN in a block of each frame: the nodes leave those pixels out, and the frame's count of
+    dropped pixels is exactly the labelled pixels of the block (unlabelled ones are not nodes anyway)."""
+    import numpy as np
+
+    from monolib import dataset, perception, scenegraphs
+
+    s = load_study("smoke")
+    frame = dataset.select_frames(s, dataset.open_dataset(s), s.gcn.val_settings).test[0]
+    real = perception.depth_source
+
+    def with_a_hole(study, name):
+        read = real(study, name)
+
+        def holed(f):
+            d = read(f).copy()
+            d[:40, :50] = np.nan
+            return d
+        return holed
+
+    monkeypatch.setattr(perception, "depth_source", with_a_hole)
+    x, pos, dropped = scenegraphs._frame_nodes((s, ["s1"], frame.key))[0]
+    sem = frame.semantic
+    valid_gt = np.isfinite(frame.depth) & (frame.depth > 0)
+    expected = int(((sem >= 1) & ~valid_gt).sum() + ((sem[:40, :50] >= 1) & valid_gt[:40, :50]).sum())
+    assert dropped == expected and dropped > 0
+    sizes = scenegraphs.graph_sizes(s)
+    assert {"dropped_pixels", "frames_with_dropped_pixels"} <= set(sizes.columns)
+    assert (sizes["dropped_pixels"] >= 0).all()
