@@ -23,6 +23,7 @@ Public API: `render_dataset(study, out_dir)` and `benchmark()`.
 from __future__ import annotations
 
 import csv
+import hashlib
 import io as _io
 import json
 import math
@@ -1551,8 +1552,7 @@ def _worker(args):
         shutil.rmtree(tmp)
     try:
         info = render_setting(s, key, width, height, seed, tmp)
-        if final.exists():
-            shutil.rmtree(final)
+        _set_aside(final)
         os.replace(tmp, final)
     finally:
         if tmp.exists():
@@ -1576,6 +1576,48 @@ def _abandoned(tmp: Path) -> bool:
     except PermissionError:  # a living process of another user
         return False
     return False
+
+
+def _rendered_key(final: Path):
+    """The key a complete setting folder was rendered with (None: no readable marker, an unfinished render)."""
+    try:
+        return json.loads((final / "_detail" / "monolib_synth_setting.json").read_text()).get("key")
+    except (OSError, ValueError):
+        return None
+
+
+def _aside(final: Path, key) -> Path:
+    """Where a setting rendered with another key waits: ``<dataset>/.aside/<setting>@<hash of its key>/``."""
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:12]
+    return final.parent / ".aside" / f"{final.name}@{digest}"
+
+
+def _set_aside(final: Path) -> None:
+    """Make room for a new render of `final`: a complete setting of another key (another study file rendering
+    into this folder) is moved aside, never deleted; an unfinished one (a killed render's) is removed."""
+    if not final.exists():
+        return
+    key = _rendered_key(final)
+    if key is None:
+        shutil.rmtree(final)
+        return
+    kept = _aside(final, key)
+    if kept.exists():  # an older copy of that same key's render
+        shutil.rmtree(kept)
+    kept.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(final, kept)
+
+
+def _restore(final: Path, key: dict) -> Optional[dict]:
+    """A setting of `key` rendered earlier and set aside by another key's render: moved back (the other moved aside
+    in turn). Returns its info, or None when there is none."""
+    mine = _aside(final, json.loads(json.dumps(key)))
+    info = _finished(mine, key) if mine.is_dir() else None
+    if info is None:
+        return None
+    _set_aside(final)
+    os.replace(mine, final)
+    return info
 
 
 def _finished(final: Path, key: dict) -> Optional[dict]:
@@ -1612,7 +1654,7 @@ def render_dataset(study, out_dir, progress: bool = True) -> Path:
     todo = []
     for s in settings:
         key = _setting_key(s, study)
-        info = _finished(out_dir / s["name"], key)
+        info = _finished(out_dir / s["name"], key) or _restore(out_dir / s["name"], key)
         if info is not None:
             infos[s["name"]] = info
         else:

@@ -151,3 +151,36 @@ def test_the_graph_stage_counts_the_labelled_pixels_it_drops_for_their_depth(smo
     sizes = scenegraphs.graph_sizes(s)
     assert {"dropped_pixels", "frames_with_dropped_pixels"} <= set(sizes.columns)
     assert (sizes["dropped_pixels"] >= 0).all()
+
+
+def test_a_setting_rendered_for_another_study_file_is_kept_aside_and_comes_back(tmp_path):
+    """Two study files render into one dataset folder with other keys (here another resolution): the first's
+    settings are moved aside, never deleted, and come back unrendered, byte for byte, when it runs again."""
+    import copy
+    import hashlib
+
+    def tiny(width, height):
+        s = copy.deepcopy(load_study("smoke"))
+        ds = s.dataset
+        ds.width, ds.height, ds.train_settings, ds.test_settings, ds.test_siblings = width, height, 2, 2, 0
+        ds.frames_per_setting, ds.train_frames_per_setting, ds.tilt_shift_settings, ds.workers = 2, 2, 0, 1
+        return s
+
+    def digest(root):
+        return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+                for p in sorted(root.glob("ai_*/images/*/*.hdf5"))}
+
+    root = tmp_path / "dataset"
+    a, b = tiny(128, 96), tiny(64, 48)
+    synth.render_dataset(a, root, progress=False)
+    first = digest(root)
+    assert first
+    synth.render_dataset(b, root, progress=False)
+    assert digest(root) != first
+    assert len(list((root / ".aside").iterdir())) == 4                  # a's four settings, kept whole
+    stamp = {p: p.stat().st_mtime_ns for p in root.glob(".aside/*/_detail/monolib_synth_setting.json")}
+    synth.render_dataset(a, root, progress=False)                        # back, not rendered again
+    assert digest(root) == first
+    assert all((root / p.relative_to(root / ".aside").parts[0].split("@")[0] / "_detail" /
+                "monolib_synth_setting.json").stat().st_mtime_ns == t for p, t in stamp.items())
+    assert len(list((root / ".aside").iterdir())) == 4                  # now b's
