@@ -66,16 +66,31 @@ def test_two_study_files_of_one_name_one_after_the_other_keep_both_cells(two):
     assert record(cell.aside(folder(), keys[b]))["key"] == keys[b]
 
 
-def test_two_study_files_of_one_name_at_once_both_finish_and_keep_their_cells(two):
-    """Started together: the second waits for the first (one line naming it), then runs; both cells remain."""
+def test_two_study_files_of_one_name_at_once_both_finish_and_keep_their_cells(two, tmp_path):
+    """Both started while a third run holds the study: each prints one line naming the holder and waits; released,
+    one runs while the other waits for it, then the other runs; both finish and both cells remain. (The holder
+    makes the overlap certain: two runs started together could otherwise finish one before the other locks.)"""
     a, b, keys = two
-    code = "import sys; from monolib.study import prepare; prepare(sys.argv[1], cells=True, progress=False)"
-    procs = [subprocess.Popen([sys.executable, "-c", code, str(p)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                              text=True, env={**os.environ, "MPLBACKEND": "agg"}) for p in (a, b)]
-    outs = [p.communicate(timeout=600) for p in procs]
-    assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
-    waited = [o[1] for o in outs if "in use by pid" in o[1]]
-    assert len(waited) == 1 and "waiting for it to finish" in waited[0], [o[1][-1000:] for o in outs]
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pathlib import Path; "
+                               "from monolib import locks\nwith locks.study_lock(Path(sys.argv[1])):\n"
+                               "    print('held', flush=True); time.sleep(600)", str(paths.study_dir(NAME))],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        code = "import sys; from monolib.study import prepare; prepare(sys.argv[1], cells=True, progress=False)"
+        logs = [tmp_path / f"{p.stem}.err" for p in (a, b)]
+        procs = [subprocess.Popen([sys.executable, "-c", code, str(p)], stdout=subprocess.DEVNULL,
+                                  stderr=open(log, "w"), env={**os.environ, "MPLBACKEND": "agg"})
+                 for p, log in zip((a, b), logs)]
+        deadline = time.time() + 300
+        while not all(f"in use by pid {holder.pid}" in log.read_text() for log in logs):
+            assert time.time() < deadline and all(p.poll() is None for p in procs), [log.read_text() for log in logs]
+            time.sleep(0.2)
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    assert [p.wait(timeout=600) for p in procs] == [0, 0], [log.read_text()[-2000:] for log in logs]
+    assert all("waiting for it to finish" in log.read_text() for log in logs)
     found = {record(f)["key"] for f in (folder(), *cell.aside(folder(), "x").parent.glob(folder().name + "@*"))}
     assert found == set(keys.values())
 
