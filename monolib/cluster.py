@@ -47,35 +47,25 @@ def task_environment() -> dict[str, str]:
 FINGERPRINT_ENV = "MONOLIB_FINGERPRINT"  # the client's `fingerprint`, with every task sent to a Dask worker
 
 
-# The libraries whose versions decide a cell's numbers (the GCN, the baselines, retrieval and the perception
-# readers a cell's graphs come from).
-LIBRARIES = ("torch", "torchvision", "torch_geometric", "numpy", "scipy", "pandas", "timm",
-             "segmentation_models_pytorch", "opencv-python-headless", "opencv-python", "scikit-image")
-
-
 def fingerprint(study_file: str) -> dict:
     """Everything that decides a cell, computed afresh (no cache: a worker that lives on while the files it runs
-    change is seen): the code version of every stage, Python's and the libraries' versions, and the study as
-    loaded (its `extends` base file resolved; a hash)."""
+    change is seen): the code version of every stage, Python's version and those of every stage's libraries (the
+    ones in the stages' keys, `versions.STAGE_LIBRARIES`), and the study as loaded (its `extends` base file
+    resolved; its key)."""
     import dataclasses
-    import json
     import platform
-    from importlib import metadata
 
     from monolib import versions
-    from monolib.params import load_study
+    from monolib.params import key_of, load_study
 
     code = {stage: versions.code_version.__wrapped__(stage) for stage in versions.STAGE_MODULES}
     libraries = {"python": platform.python_version()}
-    for name in LIBRARIES:
-        try:
-            libraries[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            libraries[name] = None
+    for stage in versions.STAGE_LIBRARIES:
+        libraries.update(versions.library_versions.__wrapped__(stage))
     try:
         spec = dataclasses.asdict(load_study(study_file, check_files=False))
         spec.pop("path", None)
-        study = hashlib.sha256(json.dumps(spec, sort_keys=True, default=str).encode()).hexdigest()[:16]
+        study = key_of(spec)
     except (StudyError, OSError) as exc:
         study = f"unreadable ({exc})"
     return {"code": code, "libraries": libraries, "study": study}

@@ -87,7 +87,6 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
         log.warning("%s: %d cells outside the study's grid left out of the report (kept on disk), e.g. %s",
                     results.cells_root(study_name), len(stale), stale[0].parent)
     numbers = results.collect(study_name, cells)
-    numbers.attrs["left_out"] = len(stale)
     labels = {**results.recorded_labels(study_name, cells), **(results.labels_of(study) if study is not None else {}),
               **dict(scenario_labels or {})}
     written: dict[str, Path] = {}
