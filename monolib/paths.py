@@ -11,7 +11,7 @@ PARAMS = ROOT / "params"
 NOTEBOOKS = ROOT / "notebooks"
 FIGURES = Path(os.environ.get("MONOLIB_FIGURES", ROOT / "figures"))
 RUNS = Path(os.environ.get("MONOLIB_RUNS", ROOT / "runs"))
-DATA = PACKAGE / "data"
+RESOURCES = PACKAGE / "resources"  # the shipped tables and weights
 
 
 def study_dir(study_name: str) -> Path:

@@ -7,7 +7,7 @@ after it run again on an existing ``runs/``. Each stage's key also holds the key
 perception models', the models' in the graphs', the graphs' in the cells'), so a change propagates downstream.
 
 A hash is conservative (a refactor that keeps every number still recomputes) but cannot be forgotten the way a
-hand-bumped constant can. `monolib.synth.FORMAT_VERSION` stays as the rendered files' own format mark.
+hand-bumped constant can. `monolib.data.synth.FORMAT_VERSION` stays as the rendered files' own format mark.
 """
 from __future__ import annotations
 
@@ -19,22 +19,23 @@ from monolib import paths
 
 # The modules whose code decides each stage's output (the stage's own module and the ones it computes with).
 STAGE_MODULES = {
-    "dataset": ["synth", "hypersim", "labels"],
-    "perception": ["perception", "segmentation", "depth", "imagenet", "zoo", "manifests", "weights", "dataset",
-                   "protocols", "retrieval", "hypersim", "labels"],
-    "graphs": ["scenegraphs", "graph", "dataset", "protocols", "retrieval", "hypersim", "published", "methods",
-               "labels"],
-    "cells": ["cell", "gcn", "baselines", "protocols", "retrieval", "methods", "graph", "dataset", "hypersim", "labels"],
+    "dataset": ["data.stage", "data.synth", "data.hypersim", "data.labels"],
+    "perception": ["perception.stage", "perception.segmentation", "perception.depth", "perception.imagenet",
+                   "perception.zoo", "perception.manifests", "perception.weights", "data.stage", "data.selection",
+                   "data.protocols", "data.hypersim", "data.labels"],
+    "graphs": ["graphs.stage", "graphs.build", "data.stage", "data.selection", "data.protocols", "data.hypersim",
+               "graphs.published", "methods", "data.labels"],
+    "cells": ["retrieval.cell", "retrieval.gcn", "retrieval.baselines", "retrieval.evaluate", "retrieval.metrics",
+              "methods", "graphs.build", "data.stage", "data.selection", "data.protocols", "data.hypersim",
+              "data.labels"],
 }
 # What a stage's modules may import beyond their own list (`tests/test_cache.py` holds every import to this):
-# upstream stages, whose keys are part of this stage's key; infrastructure that computes no number; and the
-# orchestration and presentation a module calls in functions that write no cached output (graph sizes, labels of
-# tables). A new import outside these makes that test fail: add the module to the stage's list or here, with reason.
+# upstream stages, whose keys are part of this stage's key, and infrastructure that computes no number. A new
+# import outside these makes that test fail: add the module to the stage's list or here, with reason.
 UPSTREAM = {"dataset": [], "perception": ["dataset"], "graphs": ["dataset", "perception"],
             "cells": ["dataset", "perception", "graphs"]}
 INFRASTRUCTURE = ["io", "paths", "params", "errors", "device", "versions", "progress", "locks"]
-PRESENTATION = ["report", "results", "statistics", "tables", "plots", "figures", "study", "grid", "viz", "fidelity",
-                "readme"]
+PRESENTATION: list[str] = []  # (every import points down the pipeline: no stage module imports the report or runner)
 
 
 # The libraries whose versions decide each stage's numbers: part of the stage's key, next to its code's version.
@@ -47,7 +48,7 @@ STAGE_LIBRARIES = {
 # Functions of a stage's module that draw or show and compute no cached output: left out of its version, so that
 # a change to a figure does not recompute the stage.
 PRESENTATION_FUNCTIONS = {
-    "perception": {"plot_training", "plot_depth_examples", "plot_semantic_examples", "draw_figures", "wide",
+    "perception.stage": {"plot_training", "plot_depth_examples", "plot_semantic_examples", "draw_figures", "wide",
                    "_write_if_changed"},
 }
 
@@ -85,7 +86,7 @@ def source_version(source: str, filename: str = "<source>") -> str:
 @functools.lru_cache(maxsize=None)
 def module_version(module: str) -> str:
     """`source_version` of one module (``monolib/<module>.py``), its `PRESENTATION_FUNCTIONS` left out."""
-    path = paths.PACKAGE / f"{module}.py"
+    path = paths.PACKAGE.joinpath(*module.split(".")).with_suffix(".py")
     text = path.read_text()
     drop = PRESENTATION_FUNCTIONS.get(module)
     if drop:

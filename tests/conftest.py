@@ -8,8 +8,9 @@ import pytest
 
 @pytest.fixture(scope="session")
 def smoke_dataset(tmp_path_factory):
-    """The smoke study's mini-Hypersim, rendered once per test session (monolib.synth); returns its root Path."""
-    from monolib import params, synth
+    """The smoke study's mini-Hypersim, rendered once per test session (monolib.data.synth); returns its root Path."""
+    from monolib import params
+    from monolib.data import synth
 
     study = params.load_study("smoke")
     root = tmp_path_factory.mktemp("smoke_synth") / "dataset"

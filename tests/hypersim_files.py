@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from monolib.hypersim import CAMERA_CSV, SPLIT_CSV, Camera
+from monolib.data.hypersim import CAMERA_CSV, SPLIT_CSV, Camera
 from monolib.io import write_h5
 
 # ai_037_002's row of metadata_camera_parameters.csv (a tilt-shift camera); numbers are facts

@@ -23,7 +23,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from monolib import depth
+from monolib.perception import depth
 
 BN = ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")
 ENC = "depth_model.encoder_modules.encoder."

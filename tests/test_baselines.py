@@ -5,9 +5,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from monolib import baselines, methods
-from monolib.dataset import Selection, ensure_dataset, select_frames
+from monolib import methods
+from monolib.data.selection import Selection, select_frames
+from monolib.data.stage import ensure_dataset
 from monolib.params import load_study
+from monolib.retrieval import baselines
 
 IMAGE_METHODS = ["color_hist", "orb_bow", "image_triplet"]
 
@@ -103,7 +105,8 @@ def test_an_image_baseline_cell_evaluates_both_protocols(smoke, tmp_path):
 
     import pandas as pd
 
-    from monolib import cell, results
+    from monolib.report import results
+    from monolib.retrieval import cell
 
     study, sel = smoke
     rec = cell.run_cell(study, "color_hist", "rgb", math.inf, 0, out_dir=str(tmp_path / "cell"))

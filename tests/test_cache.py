@@ -12,8 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from monolib import cell, dataset, io, paths, perception, scenegraphs, versions
+from monolib import io, paths, versions
+from monolib.data import selection, stage as dataset
+from monolib.graphs import stage as scenegraphs
 from monolib.params import load_study
+from monolib.perception import stage as perception
+from monolib.retrieval import cell
 
 
 @pytest.fixture
@@ -26,7 +30,7 @@ def study(smoke_dataset, tmp_path, monkeypatch):
 
 def frames_of(s):
     ds = dataset.open_dataset(s)
-    return dataset.select_frames(s, ds, s.gcn.val_settings).all()
+    return selection.select_frames(s, ds, s.gcn.val_settings).all()
 
 
 def fake_predictions(s, name="deeplab"):
@@ -118,7 +122,7 @@ def test_a_cell_of_other_inputs_is_not_complete(tmp_path):
 
 
 def test_truncated_weights_are_removed_and_reported(tmp_path, caplog):
-    from monolib import segmentation as seg
+    from monolib.perception import segmentation as seg
 
     spec = load_study("smoke").perception.segmentation
     path = tmp_path / "model.pt"
@@ -141,7 +145,7 @@ def test_a_failure_outside_the_file_removes_nothing(tmp_path, failure):
     """Valid weights that cannot be read here (no permission, an I/O error, a stale network handle, the device out of
     memory): one clear error naming the file, and the file is still there (issue 19: `monolib localize` on a
     model someone else owns removed it)."""
-    from monolib import segmentation as seg
+    from monolib.perception import segmentation as seg
 
     spec = load_study("smoke").perception.segmentation
     path = tmp_path / "model.pt"
@@ -209,17 +213,24 @@ def test_keys_hold_the_device_and_the_deterministic_mode(study):
     assert cell.cell_key(other, "gcn", "s1", 1.0, 0) != cell.cell_key(study, "gcn", "s1", 1.0, 0)
 
 
+def _module_file(module: str):
+    """``monolib/<a>/<b>.py`` of a module named ``a.b`` relative to the package (None: a package or nothing)."""
+    f = paths.PACKAGE.joinpath(*module.split(".")).with_suffix(".py")
+    return f if f.is_file() else None
+
+
 def _monolib_imports(module: str) -> set[str]:
-    tree = ast.parse((paths.PACKAGE / f"{module}.py").read_text())
+    """The monolib modules `module` imports, named relative to the package (``data.synth``, ``paths``)."""
+    tree = ast.parse(_module_file(module).read_text())
     out = set()
     for n in ast.walk(tree):
-        if isinstance(n, ast.ImportFrom) and n.module == "monolib":
-            out |= {a.name for a in n.names}
-        elif isinstance(n, ast.ImportFrom) and n.module and n.module.startswith("monolib."):
-            out.add(n.module.split(".")[1])
+        if isinstance(n, ast.ImportFrom) and n.module and n.module.split(".")[0] == "monolib":
+            base = n.module.split(".")[1:]
+            for a in n.names:  # `from monolib.data import synth` names a module; `from monolib.io import x` does not
+                out.add(".".join(base + [a.name]) if _module_file(".".join(base + [a.name])) else ".".join(base))
         elif isinstance(n, ast.Import):
-            out |= {a.name.split(".")[1] for a in n.names if a.name.startswith("monolib.")}
-    return out
+            out |= {a.name.split(".", 1)[1] for a in n.names if a.name.startswith("monolib.")}
+    return out - {""}
 
 
 @pytest.mark.parametrize("stage", list(versions.STAGE_MODULES))
@@ -230,16 +241,15 @@ def test_every_module_a_stage_computes_with_is_in_its_version(stage):
     for up in versions.UPSTREAM[stage]:
         allowed |= set(versions.STAGE_MODULES[up])
     for m in versions.STAGE_MODULES[stage]:
-        assert (paths.PACKAGE / f"{m}.py").is_file(), m
+        assert _module_file(m), m
         assert _monolib_imports(m) <= allowed, (m, sorted(_monolib_imports(m) - allowed))
 
 
 # ---- deterministic mode ----------------------------------------------------------------------------------------
 
 def test_the_same_seed_gives_the_same_weights_and_sets_deterministic_kernels(study):
-    from monolib import gcn
-
-    from monolib import graph
+    from monolib.graphs import build as graph
+    from monolib.retrieval import gcn
 
     graphs = {k: [graph.at_threshold(g, 2.0) for g in v] for k, v in scenegraphs.load(study, "s1").items()}
     spec = dataclasses.replace(study.gcn, epochs=2)

@@ -134,7 +134,7 @@ def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_fi
     after = cell_records("smoke_dask_kill")
     assert len(after) == 4 and 1 <= len(done) < 4 and killed in after
     assert all(after[name].stat().st_mtime_ns == t for name, t in done.items())  # finished: not run again
-    from monolib.cell import run_cell
+    from monolib.retrieval.cell import run_cell
 
     s = load_study(str(study_file))
     for name in set(after) - set(done):  # the rest (the killed cell among them) as an uninterrupted run makes them
@@ -150,7 +150,7 @@ def test_a_worker_killed_mid_cell_costs_that_cell_only(smoke_study, scheduler_fi
 
 def _changed(part: str):
     """A `fingerprint` function of this side only, one part changed: the workers keep the real one."""
-    from monolib import cluster
+    from monolib.study import cluster
 
     real = cluster.fingerprint
 
@@ -174,7 +174,7 @@ WORDS = {"code": "code of the graphs stage", "library": r"torch_geometric \S+ \(
 def test_workers_that_compute_otherwise_are_refused_before_any_cell(scheduler_file, tmp_path, monkeypatch, part):
     """Any stage's code (not only the cells'), a library's version, or the study as loaded (its `extends` base
     resolved): each is one problem per worker, before any cell."""
-    from monolib import cluster
+    from monolib.study import cluster
 
     study_file = ground_truth_study(tmp_path, "smoke_dask_refused", [1], [0])
     monkeypatch.setattr(cluster, "fingerprint", _changed(part))
@@ -189,7 +189,7 @@ def test_each_task_checks_its_worker_again_before_it_computes(tmp_path, part):
     library upgraded under a running worker): the task compares afresh and refuses before the notebook runs."""
     import json
 
-    from monolib import cluster, study
+    from monolib.study import cluster, runner as study
 
     study_file = ground_truth_study(tmp_path, "smoke_dask_task", [1], [0])
     client_side = json.dumps(_changed(part)(str(study_file)))
@@ -212,7 +212,7 @@ def test_a_bad_scheduler_value_is_one_clear_error(tmp_path, value, words):
 
 
 def test_no_scheduler_at_the_address_is_one_clear_error(tmp_path):
-    from monolib import cluster
+    from monolib.study import cluster
 
     study_file = ground_truth_study(tmp_path, "smoke_dask_none", [1], [0])
     with pytest.raises(StudyError, match="no Dask scheduler answered within 3 s"):

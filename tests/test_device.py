@@ -10,9 +10,10 @@ import pytest
 import torch
 from torch_geometric.data import Batch, Data
 
-from monolib import baselines, depth, gcn, segmentation
-from monolib.labels import NUM_CLASSES
+from monolib.data.labels import NUM_CLASSES
 from monolib.params import GCNSpec
+from monolib.perception import depth, segmentation
+from monolib.retrieval import baselines, gcn
 
 META = torch.device("meta")
 

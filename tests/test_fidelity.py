@@ -1,4 +1,4 @@
-"""Data fidelity (monolib.fidelity): known answers on hand-built graphs, agreement with the shared reference script,
+"""Data fidelity (monolib.graphs.fidelity): known answers on hand-built graphs, agreement with the shared reference script,
 and the real published sample."""
 import json
 import math
@@ -11,7 +11,8 @@ import pytest
 import torch
 from torch_geometric.data import Data
 
-from monolib import fidelity, paths, published
+from monolib import paths
+from monolib.graphs import fidelity, published
 
 SHARED = paths.ROOT.parent / "shared"
 REFERENCE_SCRIPT = SHARED / "tools" / "fidelity_reference.py"
@@ -208,7 +209,8 @@ def test_agrees_with_the_reference_script(tmp_path, seed):
 
 def test_a_study_cache_through_the_command(tmp_path, monkeypatch, capsys):
     """`monolib fidelity STUDY` reads the study's ground-truth graph cache and writes both files."""
-    from monolib import cli, scenegraphs
+    from monolib import cli
+    from monolib.graphs import stage as scenegraphs
     from monolib.params import load_study
 
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 import torch
 
-from monolib.gcn import GraphEncoder, draw_triplets, embed, train
+from monolib.graphs.build import at_threshold, complete_graph
 from monolib.params import GCNSpec
-from monolib.graph import at_threshold, complete_graph
+from monolib.retrieval.gcn import GraphEncoder, draw_triplets, embed, train
 
 
 def toy_graphs(n_settings=4, per=6, seed=0):
@@ -199,7 +199,7 @@ def test_a_pool_batch_holds_the_tensors_of_batch_from_data_list():
     graphs without edges (threshold 0) among them."""
     from torch_geometric.data import Batch
 
-    from monolib.gcn import GraphPool
+    from monolib.retrieval.gcn import GraphPool
 
     empty = at_threshold(complete_graph(np.zeros((0, 4)), np.zeros((0, 3)), "a", "a/0"), math.inf)
     x, pos = np.column_stack([[1, 2, 5], np.full((3, 3), 0.5)]).astype(np.float32), np.eye(3, dtype=np.float32)
@@ -248,7 +248,7 @@ def test_the_edge_list_path_of_devices_without_sparse_products_gives_the_same_em
     the same normalised weights: the same embeddings up to float rounding."""
     from torch_geometric.data import Batch
 
-    from monolib import gcn
+    from monolib.retrieval import gcn
 
     model = GraphEncoder(GCNSpec()).eval()
     batch = Batch.from_data_list(toy_graphs(3, 2))

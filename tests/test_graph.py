@@ -4,9 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from monolib.graph import build_scene_graph, grouped_median, grouped_median_u8, scene_nodes
-from monolib.hypersim import Camera
-from monolib.graph import at_threshold, complete_graph
+from monolib.data.hypersim import Camera
+from monolib.graphs.build import (
+    at_threshold, build_scene_graph, complete_graph, grouped_median, grouped_median_u8, scene_nodes
+)
 
 CAM = Camera.canonical(8, 6)
 
@@ -131,9 +132,10 @@ def test_mismatched_shapes_raise():
 def test_a_frame_with_a_missing_file_becomes_an_empty_graph(tmp_path, monkeypatch):
     """Missing Hypersim files are a normal case: the graph stage logs them and goes on."""
     import yaml
-
     from hypersim_files import write_setting
-    from monolib import paths, scenegraphs
+
+    from monolib import paths
+    from monolib.graphs import stage as scenegraphs
     from monolib.params import load_study
 
     root = tmp_path / "data"
@@ -158,8 +160,8 @@ def test_the_original_double_loop_builds_the_same_graph():
     """The benchmark's reference (`monolib.bench.original_graph`, the original code's per-pixel loop) and ours agree
     node for node and edge for edge, with invalid depth and unlabelled pixels in the frame."""
     from monolib.bench import original_graph
-    from monolib.graph import build_scene_graph
-    from monolib.hypersim import Camera
+    from monolib.data.hypersim import Camera
+    from monolib.graphs.build import build_scene_graph
 
     rng = np.random.default_rng(5)
     semantic = rng.integers(-1, 6, (24, 32)).astype(np.int16)

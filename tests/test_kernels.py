@@ -1,4 +1,4 @@
-"""Warm kernels (monolib.kernels): a cell's files do not depend on whether its notebook ran in a warm kernel or in a
+"""Warm kernels (monolib.study.kernels): a cell's files do not depend on whether its notebook ran in a warm kernel or in a
 kernel of its own, nor on which cells ran before it in that kernel; a kernel killed during a cell is replaced and
 the cell run again."""
 import json
@@ -14,8 +14,9 @@ from pathlib import Path
 import nbformat
 import pytest
 
-from monolib import kernels, paths
+from monolib import paths
 from monolib.params import load_study
+from monolib.study import kernels
 
 pytestmark = pytest.mark.slow
 CELL_FILES = ("cell.json", "rankings.csv", "protocol.csv", "embeddings.npy", "model.pt", "history.csv")
@@ -60,7 +61,7 @@ def test_warm_and_cold_kernels_give_the_same_files(smoke_study, tmp_path):
 
 
 def run_cell(cell: tuple, out: Path) -> None:
-    from monolib.study import CELL_NOTEBOOK, execute
+    from monolib.study.runner import CELL_NOTEBOOK, execute
 
     method, scenario, threshold, seed = cell
     execute(CELL_NOTEBOOK, out / "cell.ipynb", {"study": "smoke", "method": method, "scenario": scenario,
@@ -90,7 +91,7 @@ def test_a_cell_does_not_depend_on_the_cells_before_it(smoke_study, tmp_path):
 def test_a_kernel_killed_during_a_cell_is_replaced_and_the_cell_run_again(tmp_path):
     """The first run of a notebook kills its own kernel half-way (SIGKILL, from outside): the runner discards the
     dead kernel, runs the notebook again in a fresh one, and it completes there."""
-    from monolib.study import execute
+    from monolib.study.runner import execute
 
     marker = tmp_path / "pid"
     nb = nbformat.v4.new_notebook()

@@ -8,8 +8,12 @@ import shutil
 import pytest
 import torch
 
-from monolib import cell, dataset, paths, perception, scenegraphs, versions
+from monolib import paths, versions
+from monolib.data import stage as dataset
+from monolib.graphs import stage as scenegraphs
 from monolib.params import load_study
+from monolib.perception import stage as perception
+from monolib.retrieval import cell
 
 BASE = load_study("smoke")
 
@@ -163,9 +167,9 @@ def test_a_checkpoint_by_its_content_not_its_path(tmp_path):
 
 def test_the_plots_of_the_perception_module_are_not_part_of_its_version():
     """A figure's code edited: the stage's version stays; a line of the stage's computation edited: it moves."""
-    src = (paths.PACKAGE / "perception.py").read_text()
+    src = (paths.PACKAGE / "perception" / "stage.py").read_text()
     base = versions.source_version
-    drop = versions.PRESENTATION_FUNCTIONS["perception"]
+    drop = versions.PRESENTATION_FUNCTIONS["perception.stage"]
     import ast
 
     def version(text):
@@ -183,7 +187,7 @@ def test_the_plots_of_the_perception_module_are_not_part_of_its_version():
 def test_a_new_k_is_computed_from_the_rankings_without_training(smoke_study, tmp_path):
     """A complete smoke cell, reported at other k (within its top 10): the metrics come from its rankings and the
     record is rewritten; nothing else of the cell changes."""
-    from monolib import results
+    from monolib.report import results
 
     source = paths.cell_dir("smoke", "gcn", "s1", 2.0, 0)
     folder = tmp_path / "cell"

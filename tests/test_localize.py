@@ -11,8 +11,8 @@ import pytest
 import yaml
 
 from monolib import cli, localize, paths
-from monolib.gcn import GraphEncoder
 from monolib.params import load_study
+from monolib.retrieval.gcn import GraphEncoder
 
 SETTINGS = ["ai_901_001", "ai_902_001", "ai_903_001", "ai_904_001"]
 

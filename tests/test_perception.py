@@ -2,7 +2,7 @@
 (all-NaN depth, no labelled pixel) pass through evaluation and the graph-stage readers, and a re-run does no work.
 
 Most tests use a tiny hand-made dataset in the Hypersim layout (`make_tiny_dataset`) under a temporary `runs/`;
-the last one uses the real smoke study (rendered by `monolib.synth`) and is skipped when the renderer is absent.
+the last one uses the real smoke study (rendered by `monolib.data.synth`) and is skipped when the renderer is absent.
 """
 from __future__ import annotations
 
@@ -94,7 +94,8 @@ def tiny_study(tiny, tmp_path, monkeypatch):
 
 
 def _frames(study, val=1):
-    from monolib.dataset import open_dataset, select_frames
+    from monolib.data.selection import select_frames
+    from monolib.data.stage import open_dataset
 
     return select_frames(study, open_dataset(study), val)
 
@@ -105,7 +106,7 @@ def _falls(losses):
 
 
 def test_segmentation_loss_falls(tiny_study):
-    from monolib import segmentation
+    from monolib.perception import segmentation
 
     torch.set_num_threads(1)
     spec = tiny_study.perception.segmentation
@@ -120,7 +121,7 @@ def test_segmentation_loss_falls(tiny_study):
 
 
 def test_depth_loss_falls(tiny_study):
-    from monolib import depth
+    from monolib.perception import depth
 
     torch.set_num_threads(1)
     spec = tiny_study.perception.depth[0]
@@ -137,7 +138,7 @@ def test_depth_loss_falls(tiny_study):
 def test_normalise_stays_on_the_device_of_its_input():
     """The ImageNet constants are built on the CPU at import; images on another device (a GPU, here the `meta`
     device, which fails on any mix of devices) must not meet them there (the crash seen on a GPU)."""
-    from monolib import segmentation
+    from monolib.perception import segmentation
 
     x = torch.zeros((2, 3, 8, 8), dtype=torch.uint8, device="meta")
     out = segmentation.normalise(x)
@@ -145,7 +146,7 @@ def test_normalise_stays_on_the_device_of_its_input():
 
 
 def test_depth_loss_masks_nan():
-    from monolib.depth import depth_loss
+    from monolib.perception.depth import depth_loss
 
     pred = torch.zeros(2, 8, 8, requires_grad=True)
     gt = torch.full((2, 8, 8), float("nan"))
@@ -157,7 +158,7 @@ def test_depth_loss_masks_nan():
 
 
 def test_metrics_on_degenerate_frames():
-    from monolib.perception import evaluate_depth, evaluate_segmentation
+    from monolib.perception.stage import evaluate_depth, evaluate_segmentation
 
     gt = np.array([[1, 2], [2, -1]], np.int16)
     empty = np.full((2, 2), -1, np.int16)
@@ -172,7 +173,7 @@ def test_metrics_on_degenerate_frames():
 
 
 def test_run_caches_and_round_trips(tiny_study):
-    from monolib import depth, perception, segmentation
+    from monolib.perception import depth, segmentation, stage as perception
 
     table = perception.run(tiny_study, progress=False)
     assert set(table.attrs["status"].values()) == {"done"}
@@ -235,8 +236,8 @@ def test_figures(tiny_study):
     matplotlib.use("agg")
     import matplotlib.pyplot as plt
 
-    from monolib import depth, perception
-    from monolib.labels import colourize
+    from monolib.data.labels import colourize
+    from monolib.perception import depth, stage as perception
 
     perception.run(tiny_study, progress=False)
     fig_dir = paths.figures_dir("smoke")
@@ -289,7 +290,7 @@ def test_figures(tiny_study):
 
 
 def test_pretrained_offline_error(tiny_study, monkeypatch, tmp_path):
-    from monolib import segmentation
+    from monolib.perception import segmentation
 
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
     spec = tiny_study.perception.segmentation
@@ -300,7 +301,7 @@ def test_pretrained_offline_error(tiny_study, monkeypatch, tmp_path):
 
 def test_leres_structure_loads_its_own_keys(tmp_path):
     """A checkpoint in AdelaiDepth's layout ({'depth_model': {'module.depth_model.*': ...}}) loads strictly."""
-    from monolib import depth
+    from monolib.perception import depth
 
     torch.manual_seed(0)
     src = depth.LeReSDepthModel("resnet18", 16, "leres", None, (64, 64))
@@ -319,7 +320,7 @@ def test_leres_structure_loads_its_own_keys(tmp_path):
 def _untrained(study):
     """The study's segmentation net and first depth net, seeded, untrained: [(name, task, model)]. Their BatchNorm
     statistics are those of the study's frames (one forward pass), so that different frames predict differently."""
-    from monolib import depth, segmentation
+    from monolib.perception import depth, segmentation
 
     torch.manual_seed(0)
     nets = [(study.perception.segmentation.name, "segmentation", segmentation.build_model(study.perception.segmentation))]
@@ -340,7 +341,7 @@ def _read_predictions(study, name, frames):
 
 
 def perception_path(study, name, frame):
-    from monolib import perception
+    from monolib.perception import stage as perception
 
     return perception.prediction_path(study, name, frame)
 
@@ -348,7 +349,7 @@ def perception_path(study, name, frame):
 def test_loader_workers_change_no_prediction(tiny_study):
     """Frames read by 2 worker processes give the predictions of frames read in the main process, bit for bit, each
     written to its own frame's file (36 frames in batches of 5: a last batch of 1)."""
-    from monolib import perception
+    from monolib.perception import stage as perception
 
     torch.set_num_threads(1)
     frames = _frames(tiny_study).all()
@@ -371,7 +372,7 @@ def assert_each_frame_has_its_own_prediction(task, model, frames, stored):
     """Each stored prediction is the model's prediction of that frame alone (a batch of one: equal up to the last
     bits that a batch's size moves on the CPU), and not another frame's: a prediction written to the wrong frame's
     file, after the first batch or anywhere, fails here."""
-    from monolib import depth, segmentation
+    from monolib.perception import depth, segmentation
 
     predict = segmentation.predict if task == "segmentation" else depth.predict
     for i, (f, got) in enumerate(zip(frames, stored)):
@@ -388,7 +389,7 @@ def test_a_stopped_run_predicts_only_the_missing_frames(tiny_study, monkeypatch)
     """A run stopped after 7 files keeps them; the next run writes only the other frames' files, runs the network on
     their batches only (the 2nd batch of 4, partly written, again: the same batches as an uninterrupted run), touches
     no file already written, and ends with the predictions of an uninterrupted run, bit for bit."""
-    from monolib import perception
+    from monolib.perception import stage as perception
 
     torch.set_num_threads(1)
     frames = _frames(tiny_study).all()
@@ -423,7 +424,7 @@ def test_a_stopped_run_predicts_only_the_missing_frames(tiny_study, monkeypatch)
 def test_predict_takes_a_tensor_batch_as_it_takes_numpy(tiny_study):
     """The DataLoader's uint8 (N, H, W, 3) tensor batch and the numpy array of the same frames predict the same, bit
     for bit; an image in another layout is one clear error."""
-    from monolib import depth, perception, segmentation
+    from monolib.perception import depth, segmentation, stage as perception
 
     torch.set_num_threads(1)
     frames = _frames(tiny_study).test[:5]
@@ -446,7 +447,7 @@ def test_float16_only_on_cuda_and_in_the_key_only_there(tiny_study, monkeypatch)
     predictions, and its keys, do not depend on it). The loader workers are never in the key; the batch always is
     (a prediction's last bits depend on it on the CPU)."""
     import monolib.device
-    from monolib import perception, segmentation
+    from monolib.perception import segmentation, stage as perception
 
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
     assert not isinstance(segmentation.precision(cpu, True), torch.autocast)
@@ -511,8 +512,8 @@ def test_prediction_keys_default_to_the_batch_of_before():
 @pytest.mark.slow
 def test_smoke_study_rerun_is_cached(capsys):
     """perception.run on the real smoke study, twice: the second run trains and predicts nothing."""
-    pytest.importorskip("monolib.synth")
-    from monolib import perception
+    pytest.importorskip("monolib.data.synth")
+    from monolib.perception import stage as perception
 
     study = load_study("smoke")
     perception.run(study, progress=False)
@@ -527,7 +528,7 @@ def test_a_depth_network_predicting_nan_is_an_error_not_a_cached_model(tiny_stud
     """A depth network whose predictions are NaN for 90% of the pixels: its abs_rel on the other 10% could look
     good, so the stage stops with one error naming it, and nothing marks it done (no metrics, no `_complete`);
     a sound network's share (0) is in the perception table."""
-    from monolib import depth, perception
+    from monolib.perception import depth, stage as perception
 
     name = tiny_study.perception.depth[0].name
     real = depth.predict

@@ -79,7 +79,8 @@ def test_lines_unless_a_terminal_or_told_otherwise(monkeypatch, capsys):
 
 
 def test_a_failed_notebook_is_one_error_line_with_its_cell_and_executed_notebook(monkeypatch, capsys):
-    from monolib import cli, study
+    from monolib import cli
+    from monolib.study import runner as study
 
     def fail(*args, **kwargs):
         raise study.NotebookFailed("ablation_cell.ipynb: In [3] (x = 1 / 0) raised ZeroDivisionError: division by zero"
@@ -106,7 +107,7 @@ def test_execute_names_the_failed_cell_and_its_notebook_without_transport_warnin
     (tmp_path / "fails.ipynb").write_text(json.dumps(nb))
     script = textwrap.dedent(f"""
         from pathlib import Path
-        from monolib.study import NotebookFailed, execute
+        from monolib.study.runner import NotebookFailed, execute
         try:
             execute(Path({str(tmp_path / 'fails.ipynb')!r}), Path({str(tmp_path / 'out' / 'fails.ipynb')!r}),
                     {{"n": 41}}, timeout=120)

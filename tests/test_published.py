@@ -8,10 +8,10 @@ import torch
 import yaml
 from torch_geometric.data import Data
 
-from monolib import published
-from monolib.published import PublishedGraphError
+from monolib.graphs import published
+from monolib.graphs.build import at_threshold
+from monolib.graphs.published import PublishedGraphError
 from monolib.params import load_study
-from monolib.graph import at_threshold
 
 
 def published_graph(setting_digits: str, cam: str, frame: int, n: int, rng) -> Data:
@@ -176,7 +176,8 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
     p = tmp_path / "study.yaml"
     p.write_text(yaml.safe_dump(study))
     s = load_study(p)
-    from monolib import cell, paths
+    from monolib import paths
+    from monolib.retrieval import cell
 
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
     result = cell.run_cell(s, "gcn", "s1", 2.0, 0, out_dir=str(tmp_path / "cell"))
@@ -255,8 +256,10 @@ def test_a_release_of_three_volumes_gives_the_paper_protocol_its_16_settings(tmp
             torch.save(graphs, test / f"ai_{s[:3]}_{s[3:]}_{cam}_graphs.pt")
     assert len(list(test.iterdir())) == 50
     write_folder(tmp_path / "graphs" / "train", [f"0{i:02d}001" for i in range(1, 6)], 6, rng)
-    from monolib import cell, paths, tables
-    from monolib.retrieval import ProtocolDataError, protocol_settings
+    from monolib import paths
+    from monolib.report import tables
+    from monolib.retrieval import cell
+    from monolib.data.protocols import ProtocolDataError, protocol_settings
 
     study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
     study.update(name="published_release", graphs_root=str(tmp_path / "graphs"), seeds=[0], thresholds=[1])

@@ -7,15 +7,16 @@ import json
 import math
 import re
 
+import matplotlib
 import numpy as np
 import pandas as pd
 import pytest
 
-import matplotlib
-
 matplotlib.use("agg")
 
-from monolib import figures, paths, report, results, statistics, tables  # noqa: E402
+from monolib import paths
+from monolib.report import tables  # noqa: E402
+from monolib.report import figures, results, statistics, write as report
 
 A, B, C = "ai_001_001", "ai_001_002", "ai_002_001"
 
@@ -677,7 +678,7 @@ def test_the_report_reads_the_cells_of_the_grid_and_says_how_many_it_left_out(st
     from monolib.params import load_study
 
     s = load_study(path, check_files=False)
-    with caplog.at_level("WARNING", logger="monolib.report"):
+    with caplog.at_level("WARNING", logger="monolib.report.write"):
         written = report.write_report(study, fake_rgb, LABELS, study=s)
     assert any("9 cells outside the study's grid left out" in r.getMessage() for r in caplog.records), caplog.text
     numbers = pd.read_csv(written["results"])
@@ -689,12 +690,12 @@ def test_the_report_reads_the_cells_of_the_grid_and_says_how_many_it_left_out(st
     for f in outside:
         shutil.rmtree(f.parent)
     caplog.clear()
-    with caplog.at_level("WARNING", logger="monolib.report"):
+    with caplog.at_level("WARNING", logger="monolib.report.write"):
         again = report.write_report(study, fake_rgb, LABELS, study=s)
     assert {k: p.read_bytes() for k, p in again.items()} == before and "left out" not in caplog.text
 
 
 def grid_names(s):
-    from monolib import grid
+    from monolib.retrieval import grid
 
     return grid.names(s)

@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 
 from monolib.params import Protocol
-from monolib.retrieval import (ProtocolDataError, draw_protocol, evaluate, evaluate_protocols, family,
-                               metrics_from_hits, protocol_seed, protocol_settings)
+from monolib.data.protocols import ProtocolDataError, family, protocol_settings
+from monolib.retrieval.evaluate import draw_protocol, evaluate, evaluate_protocols, protocol_seed
+from monolib.retrieval.metrics import metrics_from_hits
 
 
 def test_metrics_from_known_hits():
@@ -223,7 +224,8 @@ def test_select_frames_takes_the_union_of_the_protocols(tmp_path):
     sibling families, `protocol.frames` each; a setting with too few frames is not eligible."""
     from hypersim_files import write_setting
 
-    from monolib.dataset import open_dataset, select_frames
+    from monolib.data.selection import select_frames
+    from monolib.data.stage import open_dataset
     from monolib.params import load_study
 
     frames = {"ai_001_001": 3, "ai_001_002": 3, "ai_002_001": 3, "ai_003_001": 2, "ai_003_002": 3, "ai_004_001": 3}

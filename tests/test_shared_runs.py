@@ -13,8 +13,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from monolib import cell, locks, paths, synth
+from monolib import locks, paths
+from monolib.data import synth
 from monolib.params import load_study
+from monolib.retrieval import cell
 
 pytestmark = pytest.mark.slow
 NAME = "smoke_shared"
@@ -50,7 +52,7 @@ def two(smoke_study, tmp_path):
 
 
 def test_two_study_files_of_one_name_one_after_the_other_keep_both_cells(two):
-    from monolib.study import prepare
+    from monolib.study.runner import prepare
 
     a, b, keys = two
     prepare(str(a), cells=True, progress=False)
@@ -77,7 +79,7 @@ def test_two_study_files_of_one_name_at_once_both_finish_and_keep_their_cells(tw
                               stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        code = "import sys; from monolib.study import prepare; prepare(sys.argv[1], cells=True, progress=False)"
+        code = "import sys; from monolib.study.runner import prepare; prepare(sys.argv[1], cells=True, progress=False)"
         logs = [tmp_path / f"{p.stem}.err" for p in (a, b)]
         procs = [subprocess.Popen([sys.executable, "-c", code, str(p)], stdout=subprocess.DEVNULL,
                                   stderr=open(log, "w"), env={**os.environ, "MPLBACKEND": "agg"})
@@ -142,10 +144,12 @@ def test_the_graph_stage_counts_the_labelled_pixels_it_drops_for_their_depth(smo
     dropped pixels is exactly the labelled pixels of the block (unlabelled ones are not nodes anyway)."""
     import numpy as np
 
-    from monolib import dataset, perception, scenegraphs
+    from monolib.data import selection, stage as dataset
+    from monolib.graphs import stage as scenegraphs
+    from monolib.perception import stage as perception
 
     s = load_study("smoke")
-    frame = dataset.select_frames(s, dataset.open_dataset(s), s.gcn.val_settings).test[0]
+    frame = selection.select_frames(s, dataset.open_dataset(s), s.gcn.val_settings).test[0]
     real = perception.depth_source
 
     def with_a_hole(study, name):

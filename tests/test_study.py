@@ -16,7 +16,7 @@ import yaml
 
 from monolib import paths
 from monolib.params import load_study
-from monolib.results import check_protocols, recompute_metrics, split_protocols
+from monolib.report.results import check_protocols, recompute_metrics, split_protocols
 
 pytestmark = pytest.mark.slow
 MONOLIB = [sys.executable, "-m", "monolib.cli"]
@@ -81,7 +81,7 @@ def test_smoke_numbers_within_their_cross_machine_bands(smoke_study):
 def test_every_number_is_recomputed_from_its_rankings(smoke_study):
     """Per protocol, with the protocol enforced: the paper protocol's settings are of different families, the
     siblings protocol's are pairs of one family; every number of results.csv is its cell's rankings recomputed."""
-    from monolib.retrieval import family
+    from monolib.data.protocols import family
 
     s = load_study("smoke")
     results = pd.read_csv(paths.figures_dir("smoke") / "results.csv")
@@ -133,9 +133,10 @@ def test_perception_command_is_cached_and_draws_its_figures(smoke_study):
 
 def test_cells_with_the_graphs_of_a_smaller_threshold_are_exact_copies(smoke_study, tmp_path):
     """The runner copies a cell whose graphs equal a smaller threshold's; running it for real gives the same."""
-    from monolib import cell, scenegraphs
-    from monolib.graph import at_threshold
-    from monolib.study import CellSpec, grid, same_graphs
+    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs.build import at_threshold
+    from monolib.retrieval import cell
+    from monolib.study.runner import CellSpec, grid, same_graphs
 
     s = load_study("smoke")
     copied = [json.loads(f.read_text()) for f in cell_files("smoke")]
@@ -199,7 +200,7 @@ def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path, 
     for name, r in split_protocols(rankings).items():
         assert recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(cell["metrics"][name])
     # same study, scenario, threshold and seed: the same numbers (determinism)
-    from monolib.cell import run_cell
+    from monolib.retrieval.cell import run_cell
 
     again = run_cell(s, "gcn", "s2", 3.7, 11, out_dir=str(tmp_path / "again"))
     for name in ("paper", "siblings"):
@@ -214,14 +215,14 @@ def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path, 
 def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
     import cv2
 
-    from monolib import dataset
+    from monolib.data import selection, stage as dataset
 
     db = tmp_path / "db"
     out = subprocess.run(MONOLIB + ["index", "smoke", "--out", str(db)], env=ENV, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr[-2000:]
     s = load_study("smoke")
     ds = dataset.open_dataset(s)
-    frame = dataset.select_frames(s, ds, s.gcn.val_settings).test[5]
+    frame = selection.select_frames(s, ds, s.gcn.val_settings).test[5]
     png, jpg = tmp_path / "query.png", tmp_path / "query.jpg"
     cv2.imwrite(str(png), cv2.cvtColor(cv2.resize(frame.rgb, (500, 400)), cv2.COLOR_RGB2BGR))  # another size and aspect
     cv2.imwrite(str(jpg), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
@@ -230,7 +231,7 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
     assert out.returncode == 0, out.stderr[-2000:]
     results = json.loads(out.stdout)
     assert [len(r["matches"]) for r in results] == [3, 3]
-    settings = {g.setting for g in dataset.select_frames(s, ds, s.gcn.val_settings).test}
+    settings = {g.setting for g in selection.select_frames(s, ds, s.gcn.val_settings).test}
     for r in results:
         assert [m["rank"] for m in r["matches"]] == [1, 2, 3]
         assert all(m["setting"] in settings for m in r["matches"])
@@ -262,7 +263,8 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
 
 
 def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_path, capsys):
-    from monolib import perception, scenegraphs
+    from monolib.graphs import stage as scenegraphs
+    from monolib.perception import stage as perception
 
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
     data["gcn"].update(epochs=data["gcn"]["epochs"] + 7, lr=0.01)
@@ -277,9 +279,9 @@ def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_pat
 
 
 def test_threshold_zero_gives_graphs_without_edges_and_cells_that_run(smoke_study):
-    from monolib import scenegraphs
-    from monolib.graph import at_threshold
-    from monolib.study import grid, same_graphs
+    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs.build import at_threshold
+    from monolib.study.runner import grid, same_graphs
 
     s = load_study("smoke")
     assert s.thresholds[0] == 0.0
@@ -309,8 +311,8 @@ def test_graph_sizes_table_of_the_smoke_study(smoke_study):
     runner's rule (`study.same_graphs`)."""
     import torch
 
-    from monolib import scenegraphs
-    from monolib.study import grid, same_graphs
+    from monolib.graphs import stage as scenegraphs
+    from monolib.study.runner import grid, same_graphs
 
     s = load_study("smoke")
     fig = paths.figures_dir("smoke")

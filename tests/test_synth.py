@@ -1,4 +1,4 @@
-"""The procedural mini-Hypersim (monolib.synth), checked against the format spec with h5py alone.
+"""The procedural mini-Hypersim (monolib.data.synth), checked against the format spec with h5py alone.
 
 Spec: ../shared/docs/hypersim-format.md sections 1, 1a, 1b, 2, 3, 6, 7.
 """
@@ -12,7 +12,8 @@ import h5py
 import numpy as np
 import pytest
 
-from monolib import params, synth
+from monolib import params
+from monolib.data import synth
 
 
 def h5(path: Path) -> np.ndarray:
@@ -258,7 +259,7 @@ def test_resume_skips_finished_settings(smoke_dataset, smoke_study, tmp_path, ca
 
 
 def test_tilt_shift_setting_through_the_reader(smoke_dataset):
-    from monolib.hypersim import HypersimDataset
+    from monolib.data.hypersim import HypersimDataset
 
     meta = json.loads((smoke_dataset / "monolib_synth.json").read_text())
     tilt = [m["name"] for m in meta["settings"] if m["tilt_shift"]]
@@ -288,7 +289,7 @@ def test_every_setting_of_a_large_plan_has_a_hypersim_name():
     """The zoo's mini-Hypersim has more than 100 families: their volumes wrap from ai_999 to ai_000, so every name
     is ai_VVV_NNN (which the reader requires: until 2026-11-30 the families after the 100th were named ai_1000_001
     and the reader skipped 124 of the zoo's 320 training settings without a word), and names stay unique."""
-    from monolib.hypersim import SETTING_RE
+    from monolib.data.hypersim import SETTING_RE
 
     zoo = params.load_study("zoo")
     plan = synth.plan(zoo)

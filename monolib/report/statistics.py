@@ -1,0 +1,445 @@
+"""The report's statistics: means over seeds, bootstrap intervals, paired tests, and the controlled comparisons
+built on them (encoder ablation, dim vs bright settings, depth scale, the two protocols side by side).
+
+Uncertainty
+-----------
+Every number of the tables is a mean over seeds of a mean over the queries of the test settings. Its 95 %
+interval comes from a hierarchical bootstrap over the three sources of variation: per resample, the seeds are
+drawn with replacement, the settings are drawn with replacement, and within each drawn (seed, setting) its
+queries are drawn with replacement; the statistic is the mean of the drawn per-query values (recall@k: a hit
+indicator x 100; precision@k: the own-setting share of the top k x 100; `monolib.report.results.per_query_values`). The
+interval is the 2.5 and 97.5 percentiles over B resamples (`Bootstrap`, `intervals`; ``intervals.csv``).
+
+The resample *indices* are one fixed set per study (`Bootstrap`, numpy seed 0): uniform numbers drawn once for
+[B, seed slot], [B, setting slot] and [B, seed slot, setting slot, query slot], turned into indices by
+floor(u * n). Every cell group of a study is resampled with the same numbers, and since the protocol draw
+depends only on the seed (same queries in every method, scenario and threshold of a seed), two groups resampled
+with the same numbers are paired: the difference of their resampled means is the paired bootstrap of the
+difference (`paired_difference` joins the per-query values on seed, setting and query first, so a group against
+itself gives exactly 0). Thresholds significantly below their scenario's best are found with it
+(`threshold_tests`; ``threshold_tests.csv``), and so are the differences of the controlled comparisons.
+
+Every statistic is computed within one protocol (its own bootstrap; nothing is paired across protocols).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Optional
+
+import numpy as np
+import pandas as pd
+
+from monolib.methods import METHODS
+from monolib.params import PAPER
+from monolib.report.results import (
+    METRICS, SUMMARY_KEYS, is_image, method_order, metric_cols, natural_key, only_protocol, sort_rows, split_metric,
+    with_protocol
+)
+
+N_BOOT = 1000
+BOOT_SEED = 0
+GROUP_KEYS = ["method", "scenario", "threshold", "protocol"]
+INTERVAL_COLUMNS = ["method", "scenario", "threshold", "protocol", "metric", "k", "mean", "ci_lo", "ci_hi", "n_seeds"]
+TEST_COLUMNS = ["method", "scenario", "protocol", "metric", "k", "threshold", "best_threshold", "diff", "ci_lo",
+                "ci_hi", "significant"]
+
+
+# ---- mean and spread over seeds --------------------------------------------------------------------------------
+
+def summary(results: pd.DataFrame) -> pd.DataFrame:
+    """Mean, sample std (ddof 1; NaN when n = 1) and n over seeds per (method, scenario, threshold, protocol,
+    metric, k) of `monolib.report.results.collect`."""
+    keys = [k for k in SUMMARY_KEYS if k in results.columns]
+    g = results.groupby(keys, sort=False)["value"]
+    out = g.agg(mean="mean", std="std", n="count").reset_index()
+    return sort_rows(out, keys)
+
+
+# ---- the bootstrap over test settings, queries and seeds -------------------------------------------------------
+
+class Bootstrap:
+    """The fixed resample of one study: ``n_boot`` draws of seeds, settings and queries (numpy seed `seed`).
+
+    Sized for at most `n_seeds` seeds, `n_settings` settings and `n_queries` queries per (seed, setting); a group
+    with fewer uses the first slots, so groups of the same shape are resampled with identical indices.
+    """
+
+    def __init__(self, n_seeds: int, n_settings: int, n_queries: int, n_boot: int = N_BOOT, seed: int = BOOT_SEED,
+                 chunk_elements: int = 2_000_000):
+        rng = np.random.default_rng(seed)
+        self.n_boot, self.shape = int(n_boot), (int(n_seeds), int(n_settings), int(n_queries))
+        self.u_seed = rng.random((self.n_boot, self.shape[0]))
+        self.u_setting = rng.random((self.n_boot, self.shape[1]))
+        self.u_query = rng.random((self.n_boot, *self.shape))
+        self.chunk_elements = int(chunk_elements)
+
+    @classmethod
+    def for_queries(cls, qv: pd.DataFrame, n_boot: int = N_BOOT, seed: int = BOOT_SEED) -> "Bootstrap":
+        """Sized for every group of a `monolib.report.results.query_table`."""
+        if qv.empty:
+            return cls(1, 1, 1, n_boot, seed)
+        if "protocol" not in qv.columns:
+            qv = qv.assign(protocol=PAPER)
+        n_seeds = int(qv.groupby(GROUP_KEYS)["seed"].nunique().max())
+        n_settings = int(qv.groupby(GROUP_KEYS + ["seed"])["setting"].nunique().max())
+        n_settings = max(n_settings, int(qv["setting"].nunique()))
+        n_queries = int(qv.groupby(GROUP_KEYS + ["seed", "setting"]).size().max())
+        return cls(n_seeds, n_settings, n_queries, n_boot, seed)
+
+    @staticmethod
+    def cube(frame: pd.DataFrame, cols: list[str], settings: Optional[list] = None) -> tuple[np.ndarray, np.ndarray]:
+        """(values [seed, setting, query slot, metric], counts [seed, setting]) of one group's per-query rows
+        (columns ``seed, setting, query`` and `cols`); seeds, settings and queries in sorted order."""
+        frame = frame.sort_values(["seed", "setting", "query"], kind="mergesort")
+        seeds = np.sort(frame["seed"].unique())
+        settings = sorted(frame["setting"].unique()) if settings is None else list(settings)
+        ri = np.searchsorted(seeds, frame["seed"].to_numpy())
+        si = pd.Index(settings).get_indexer(frame["setting"])
+        if (si < 0).any():
+            raise ValueError("cube: a row's setting is not in the given settings")
+        slot = frame.groupby(["seed", "setting"], sort=False).cumcount().to_numpy()
+        nq = np.zeros((len(seeds), len(settings)), dtype=np.intp)
+        np.add.at(nq, (ri, si), 1)
+        values = np.zeros((len(seeds), len(settings), int(nq.max()) if nq.size else 0, len(cols)))
+        values[ri, si, slot] = frame[cols].to_numpy(dtype=float)
+        return values, nq
+
+    def check(self, values: np.ndarray, offset: int = 0) -> None:
+        r, s, q = values.shape[:3]
+        if r > self.shape[0] or offset + s > self.shape[1] or q > self.shape[2]:
+            raise ValueError(f"bootstrap sized {self.shape} cannot resample a group of shape {(r, s, q)} "
+                             f"(setting offset {offset})")
+
+    @staticmethod
+    def observed(values: np.ndarray, nq: np.ndarray) -> np.ndarray:
+        """The mean per metric of every (seed, setting, query) value: the point estimate."""
+        valid = np.arange(values.shape[2]) < nq[..., None]
+        return np.einsum("rsqm,rsq->m", values, valid.astype(float)) / max(int(valid.sum()), 1)
+
+    def resample(self, values: np.ndarray, nq: np.ndarray, offset: int = 0) -> np.ndarray:
+        """[B, metric] resampled means (seeds, settings, then queries within each drawn (seed, setting), all with
+        replacement). `offset` shifts the setting slots used (independent draws for a second set of settings)."""
+        self.check(values, offset)
+        r, s, q, m = values.shape
+        out = np.empty((self.n_boot, m))
+        step = max(1, self.chunk_elements // max(1, r * s * max(q, 1) * m))
+        slots = np.arange(q)
+        for b0 in range(0, self.n_boot, step):
+            b1 = min(self.n_boot, b0 + step)
+            rs = np.minimum((self.u_seed[b0:b1, :r] * r).astype(np.intp), r - 1)                       # [b, R]
+            gs = np.minimum((self.u_setting[b0:b1, offset:offset + s] * s).astype(np.intp), s - 1)      # [b, S]
+            n = nq[rs[:, :, None], gs[:, None, :]]                                                     # [b, R, S]
+            qi = (self.u_query[b0:b1, :r, offset:offset + s, :q] * n[..., None]).astype(np.intp)       # [b, R, S, Q]
+            qi = np.clip(qi, 0, np.maximum(n[..., None] - 1, 0))
+            valid = (slots < n[..., None]).astype(float)
+            drawn = values[rs[:, :, None, None], gs[:, None, :, None], qi]                            # [b, R, S, Q, M]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                out[b0:b1] = np.einsum("brsqm,brsq->bm", drawn, valid) / valid.sum(axis=(1, 2, 3))[:, None]
+        return out
+
+    def interval(self, values: np.ndarray, nq: np.ndarray, offset: int = 0) -> dict[str, np.ndarray]:
+        """``{"mean", "ci_lo", "ci_hi", "boot"}`` per metric (percentiles 2.5 and 97.5 of the resampled means)."""
+        boot = self.resample(values, nq, offset)
+        lo, hi = np.nanpercentile(boot, [2.5, 97.5], axis=0)
+        return {"mean": self.observed(values, nq), "ci_lo": lo, "ci_hi": hi, "boot": boot}
+
+
+def rows_of(qv: pd.DataFrame, method: str, scenario: str, threshold: float,
+            protocol: Optional[str] = None) -> pd.DataFrame:
+    """The per-query rows of one (method, scenario, threshold) group (of one protocol when given)."""
+    rows = qv[(qv["method"] == method) & (qv["scenario"] == scenario) & (qv["threshold"] == threshold)]
+    return rows if protocol is None else only_protocol(rows, protocol)
+
+
+def _group_cols(frame: pd.DataFrame, cols: Optional[list[str]] = None) -> list[str]:
+    cols = metric_cols(frame) if cols is None else cols
+    return [c for c in cols if c in frame.columns and frame[c].notna().all()]
+
+
+def intervals(qv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
+    """``intervals.csv``: per (method, scenario, threshold, protocol, metric, k) the mean and its 95 % bootstrap
+    interval, and the number of seeds (columns `INTERVAL_COLUMNS`). Pass one protocol's rows with its own
+    `Bootstrap` (as `monolib.report.write.write_report` does) for intervals independent of the other protocol."""
+    rows = []
+    if "protocol" not in qv.columns:
+        qv = qv.assign(protocol=PAPER)
+    for (method, scenario, threshold, protocol), g in qv.groupby(GROUP_KEYS, sort=False):
+        cols = _group_cols(g)
+        if not cols:
+            continue
+        values, nq = boot.cube(g, cols)
+        iv = boot.interval(values, nq)
+        for j, c in enumerate(cols):
+            metric, k = split_metric(c)
+            rows.append((method, scenario, float(threshold), protocol, metric, k, float(iv["mean"][j]),
+                         float(iv["ci_lo"][j]), float(iv["ci_hi"][j]), int(g["seed"].nunique())))
+    out = pd.DataFrame(rows, columns=INTERVAL_COLUMNS)
+    return sort_rows(out, SUMMARY_KEYS)
+
+
+# ---- paired tests ----------------------------------------------------------------------------------------------
+
+def paired_difference(a: pd.DataFrame, b: pd.DataFrame, boot: Bootstrap,
+                      cols: Optional[list[str]] = None) -> pd.DataFrame:
+    """Paired bootstrap of mean(a) - mean(b) over the (seed, setting, query) triples the two share.
+
+    `a` and `b` are per-query rows (``seed, setting, query`` + metric columns), e.g. two cells groups of one
+    study. Returns one row per metric column: ``metric, k, diff, ci_lo, ci_hi, significant`` (the interval
+    excludes 0), and ``n_seeds``, ``n_queries`` of the shared rows.
+    """
+    cols = [c for c in (_group_cols(a, cols)) if c in _group_cols(b, cols)]
+    keys = ["seed", "setting", "query"] + (["protocol"] if "protocol" in a.columns and "protocol" in b.columns else [])
+    j = a[keys + cols].merge(b[keys + cols], on=keys, how="inner", suffixes=("_a", "_b"), validate="one_to_one")
+    d = j[keys].drop(columns="protocol", errors="ignore").copy()
+    for c in cols:
+        d[c] = j[f"{c}_a"].to_numpy(dtype=float) - j[f"{c}_b"].to_numpy(dtype=float)
+    rows = []
+    if len(d) and cols:
+        values, nq = boot.cube(d, cols)
+        iv = boot.interval(values, nq)
+        for i, c in enumerate(cols):
+            lo, hi = float(iv["ci_lo"][i]), float(iv["ci_hi"][i])
+            rows.append((*split_metric(c), float(iv["mean"][i]), lo, hi, bool(lo > 0 or hi < 0),
+                         int(d["seed"].nunique()), len(d)))
+    return pd.DataFrame(rows, columns=["metric", "k", "diff", "ci_lo", "ci_hi", "significant", "n_seeds", "n_queries"])
+
+
+def best_threshold(means: pd.Series) -> float:
+    """The threshold with the highest mean (index: thresholds); ties (to 1e-9): the smallest threshold."""
+    top = means.max()
+    return float(min(t for t, v in means.items() if v >= top - 1e-9))
+
+
+def threshold_tests(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
+    """Per (method, scenario, protocol, metric, k) with more than one threshold: every threshold against the
+    scenario's best (highest mean; ties: the smallest threshold), paired bootstrap of (threshold - best) on the
+    protocol's queries. Columns `TEST_COLUMNS` (significant: the interval excludes 0, i.e. significantly worse
+    than the best)."""
+    rows = []
+    if "protocol" not in iv.columns:
+        iv = iv.assign(protocol=PAPER)
+    for (method, scenario, protocol), g in iv.groupby(["method", "scenario", "protocol"], sort=False):
+        if g["threshold"].nunique() < 2:
+            continue
+        best = {f"{m}@{k}": best_threshold(gm.set_index("threshold")["mean"])
+                for (m, k), gm in g.groupby(["metric", "k"], sort=False)}
+        for t in sorted(g["threshold"].unique()):
+            for b in sorted(set(best.values()) - {t}):
+                cols = [c for c, bt in best.items() if bt == b]
+                d = paired_difference(rows_of(qv, method, scenario, t, protocol),
+                                      rows_of(qv, method, scenario, b, protocol), boot, cols)
+                for r in d.itertuples(index=False):
+                    rows.append((method, scenario, protocol, r.metric, int(r.k), float(t), b, r.diff, r.ci_lo,
+                                 r.ci_hi, bool(r.significant)))
+    out = pd.DataFrame(rows, columns=TEST_COLUMNS)
+    out["metric_order"] = out["metric"].map(METRICS.index)
+    out = sort_rows(out, ["method", "scenario", "protocol", "metric_order", "k", "threshold"]).drop(columns="metric_order")
+    return out
+
+
+# ---- controlled comparisons: encoder ablation ------------------------------------------------------------------
+
+ABLATION_COLUMNS = ["method", "description", "scenario", "threshold", "protocol", "metric", "k", "mean", "ci_lo",
+                    "ci_hi", "n_seeds", "diff_vs_base", "diff_lo", "diff_hi", "significant"]
+
+
+def _graph_methods(qv: pd.DataFrame, study=None, base: str = "gcn") -> list[str]:
+    present = [m for m in method_order(qv["method"].unique())
+               if not is_image(m, str(qv.loc[qv["method"] == m, "scenario"].iloc[0]))]
+    if study is not None:
+        order = [m for m in study.graph_methods() if m in present]
+        present = order + [m for m in present if m not in order]
+    return ([base] if base in present else []) + [m for m in present if m != base]
+
+
+def _description(method: str, study=None) -> str:
+    if study is not None and method in getattr(study, "variants", {}):
+        return study.variants[method].description or method
+    if study is not None and method in METHODS:
+        return METHODS[method][1]
+    return method
+
+
+def _pick_cols(cols: list[str]) -> list[str]:
+    """recall@1 and precision@6 when present, else the smallest recall k and the largest precision k."""
+    rec = sorted((c for c in cols if c.startswith("recall@")), key=lambda c: split_metric(c)[1])
+    pre = sorted((c for c in cols if c.startswith("precision@")), key=lambda c: split_metric(c)[1])
+    out = []
+    if rec:
+        out.append("recall@1" if "recall@1" in rec else rec[0])
+    if pre:
+        out.append("precision@6" if "precision@6" in pre else pre[-1])
+    return out
+
+
+def encoder_ablation(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, study=None,
+                     base: str = "gcn", protocol: str = PAPER) -> pd.DataFrame:
+    """The encoder variants against `base` on every (scenario, threshold) a variant was run at, on one protocol
+    (default ``paper``): recall@1 and precision@6 with their intervals, and the paired bootstrap difference to
+    `base` (same seeds, settings and queries). Empty when the study has no variant cells. Columns
+    `ABLATION_COLUMNS`."""
+    qv, iv = only_protocol(with_protocol(qv), protocol), only_protocol(with_protocol(iv), protocol)
+    if qv.empty:
+        return pd.DataFrame(columns=ABLATION_COLUMNS)
+    methods = _graph_methods(qv, study, base)
+    variants = [m for m in methods if m != base]
+    if not variants:
+        return pd.DataFrame(columns=ABLATION_COLUMNS)
+    vq = qv[qv["method"].isin(variants)]
+    combos = sorted({(sc, float(t)) for sc, t in zip(vq["scenario"], vq["threshold"])},
+                    key=lambda st: (natural_key(st[0]), st[1]))
+    cols = _pick_cols(metric_cols(qv))
+    ivx = iv.drop(columns="protocol").set_index(["method", "scenario", "threshold", "metric", "k"]).sort_index()
+    rows = []
+    for m in methods:
+        for sc, t in combos:
+            mine = rows_of(qv, m, sc, t)
+            if mine.empty:
+                continue
+            diffs = pd.DataFrame()
+            if m != base:
+                ref = rows_of(qv, base, sc, t)
+                if not ref.empty:
+                    diffs = paired_difference(mine, ref, boot, cols).set_index(["metric", "k"])
+            for c in cols:
+                metric, k = split_metric(c)
+                key_ = (m, sc, t, metric, k)
+                if key_ not in ivx.index:
+                    continue
+                r = ivx.loc[key_]
+                d = diffs.loc[(metric, k)] if (metric, k) in diffs.index else None
+                rows.append((m, _description(m, study), sc, t, protocol, metric, k, float(r["mean"]), float(r["ci_lo"]),
+                             float(r["ci_hi"]), int(r["n_seeds"]),
+                             *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
+                               if d is not None else (np.nan, np.nan, np.nan, False))))
+    return pd.DataFrame(rows, columns=ABLATION_COLUMNS)
+
+
+# ---- controlled comparisons: dim vs bright settings ------------------------------------------------------------
+
+LIGHT_COLUMNS = ["method", "scenario", "threshold", "protocol", "light", "n_settings", "n_queries", "mean", "ci_lo",
+                 "ci_hi", "n_seeds"]
+
+
+def light_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, dim_of: Mapping[str, bool],
+                scenarios: Optional[list[str]] = None, method: str = "gcn", k: int = 1,
+                protocol: str = PAPER) -> pd.DataFrame:
+    """recall@k of the queries of dim and of bright test settings: `method` on each scenario (default: every
+    scenario it has) at that scenario's best threshold by mean recall@k (ties: the smallest), and every image
+    baseline. Rows ``light`` = dim, bright and ``bright - dim`` (the difference of the two resampled means; the two
+    sets of settings are drawn independently, the seeds jointly). One protocol (default ``paper``). Columns
+    `LIGHT_COLUMNS`."""
+    col = f"recall@{k}"
+    qv, iv = only_protocol(with_protocol(qv), protocol), only_protocol(with_protocol(iv), protocol)
+    groups = []
+    r = iv[(iv["method"] == method) & (iv["metric"] == "recall") & (iv["k"] == k)]
+    for sc in sorted(r["scenario"].unique(), key=natural_key):
+        if scenarios is not None and sc not in scenarios:
+            continue
+        groups.append((method, sc, best_threshold(r[r["scenario"] == sc].set_index("threshold")["mean"])))
+    for (m, sc, t) in qv[["method", "scenario", "threshold"]].drop_duplicates().itertuples(index=False):
+        if is_image(m, sc):
+            groups.append((m, sc, float(t)))
+    rows = []
+    for m, sc, t in groups:
+        g = rows_of(qv, m, sc, t)
+        if col not in g.columns or g[col].isna().any():
+            continue
+        dim = g["setting"].map(lambda s: bool(dim_of.get(s, False)))
+        parts = {}
+        offset = 0
+        for light, part in (("dim", g[dim.to_numpy()]), ("bright", g[~dim.to_numpy()])):
+            if part.empty:
+                rows.append((m, sc, t, protocol, light, 0, 0, np.nan, np.nan, np.nan, 0))
+                continue
+            values, nq = boot.cube(part, [col])
+            off = offset if offset + values.shape[1] <= boot.shape[1] else 0
+            iv_ = boot.interval(values, nq, off)
+            offset += values.shape[1]
+            parts[light] = iv_
+            rows.append((m, sc, t, protocol, light, int(part["setting"].nunique()), len(part), float(iv_["mean"][0]),
+                         float(iv_["ci_lo"][0]), float(iv_["ci_hi"][0]), int(part["seed"].nunique())))
+        if len(parts) == 2:
+            d = parts["bright"]["boot"][:, 0] - parts["dim"]["boot"][:, 0]
+            lo, hi = np.nanpercentile(d, [2.5, 97.5])
+            rows.append((m, sc, t, protocol, "bright - dim", int(g["setting"].nunique()), len(g),
+                         float(parts["bright"]["mean"][0] - parts["dim"]["mean"][0]), float(lo), float(hi),
+                         int(g["seed"].nunique())))
+    return pd.DataFrame(rows, columns=LIGHT_COLUMNS)
+
+
+# ---- controlled comparisons: depth scale -----------------------------------------------------------------------
+
+DEPTH_COLUMNS = ["method", "depth", "semantic", "scenario", "depth_scale", "threshold", "protocol", "mean", "ci_lo",
+                 "ci_hi", "n_seeds", "diff_vs_scale1", "diff_lo", "diff_hi", "significant"]
+
+
+def depth_scale_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame,
+                      method: str = "gcn", k: int = 1, protocol: str = PAPER) -> pd.DataFrame:
+    """recall@k against the depth scale factor: the scenarios with ``depth_scale != 1`` and, per (depth,
+    semantic) source pair, the scenario with the same sources and scale 1 (the one in the tables first), at
+    every threshold `method` was run; with the paired difference to scale 1 at the same threshold. Empty when
+    the study has no scaled scenario. One protocol (default ``paper``). `info`: `monolib.report.results.scenario_info`.
+    Columns `DEPTH_COLUMNS`."""
+    col = f"recall@{k}"
+    qv, iv = only_protocol(with_protocol(qv), protocol), only_protocol(with_protocol(iv), protocol)
+    rows = []
+    if info.empty:
+        return pd.DataFrame(columns=DEPTH_COLUMNS)
+    scaled = info[info["depth_scale"] != 1.0]
+    r = iv[(iv["method"] == method) & (iv["metric"] == "recall") & (iv["k"] == k)]
+    for (depth, semantic), grp in scaled.groupby(["depth", "semantic"], sort=False):
+        same = info[(info["depth"] == depth) & (info["semantic"] == semantic)]
+        ones = same[same["depth_scale"] == 1.0].sort_values("in_tables", ascending=False, kind="mergesort")
+        ref = str(ones["scenario"].iloc[0]) if len(ones) else None
+        members = ([ref] if ref else []) + list(grp["scenario"])
+        for sc in members:
+            scale = float(info.loc[info["scenario"] == sc, "depth_scale"].iloc[0])
+            for _, row in r[r["scenario"] == sc].sort_values("threshold").iterrows():
+                t = float(row["threshold"])
+                d = None
+                if ref and sc != ref and not rows_of(qv, method, ref, t).empty:
+                    dd = paired_difference(rows_of(qv, method, sc, t), rows_of(qv, method, ref, t), boot, [col])
+                    d = dd.iloc[0] if len(dd) else None
+                rows.append((method, depth, semantic, sc, scale, t, protocol, float(row["mean"]), float(row["ci_lo"]),
+                             float(row["ci_hi"]), int(row["n_seeds"]),
+                             *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
+                               if d is not None else (np.nan, np.nan, np.nan, False))))
+    out = pd.DataFrame(rows, columns=DEPTH_COLUMNS)
+    return out.sort_values(["depth", "semantic", "threshold", "depth_scale"], kind="mergesort").reset_index(drop=True)
+
+
+# ---- controlled comparisons: the two protocols side by side ----------------------------------------------------
+
+PROTOCOLS_COLUMNS = ["method", "scenario", "threshold", "protocol", "metric", "k", "mean", "ci_lo", "ci_hi",
+                     "n_seeds", "n_settings", "n_queries"]
+
+
+def protocols_table(qv: pd.DataFrame, iv: pd.DataFrame, hidden: frozenset | set = frozenset(), k: int = 1,
+                    base: str = PAPER) -> pd.DataFrame:
+    """recall@k of every method on every protocol, from the same cells: each graph method on each scenario in the
+    tables at the threshold with the best mean recall@k of the `base` protocol (ties: the smallest), every image
+    method; with the 95 % bootstrap interval of each protocol (its own resample: the two are not paired) and the
+    numbers of settings and queries behind it. Columns `PROTOCOLS_COLUMNS`."""
+    iv, qv = with_protocol(iv), with_protocol(qv)
+    r = iv[(iv["metric"] == "recall") & (iv["k"] == k) & ~iv["scenario"].isin(hidden)]
+    groups = []
+    for (m, sc), g in r.groupby(["method", "scenario"], sort=False):
+        b = g[g["protocol"] == base]
+        if b.empty:
+            continue
+        t = float(b["threshold"].iloc[0]) if is_image(m, sc) else best_threshold(b.set_index("threshold")["mean"])
+        groups.append((m, sc, t))
+    rows = []
+    for m, sc, t in groups:
+        for _, x in r[(r["method"] == m) & (r["scenario"] == sc) & (r["threshold"] == t)].iterrows():
+            q = rows_of(qv, m, sc, t, x["protocol"])
+            n_set = int(q.groupby("seed")["setting"].nunique().max()) if len(q) else 0
+            n_q = int(q.groupby("seed").size().max()) if len(q) else 0
+            rows.append((m, sc, t, x["protocol"], "recall", k, float(x["mean"]), float(x["ci_lo"]), float(x["ci_hi"]),
+                         int(x["n_seeds"]), n_set, n_q))
+    out = pd.DataFrame(rows, columns=PROTOCOLS_COLUMNS)
+    if out.empty:
+        return out
+    out["_img"] = [int(is_image(m, sc)) for m, sc in zip(out["method"], out["scenario"])]
+    return sort_rows(out, ["_img", "scenario", "method", "protocol"]).drop(columns="_img").reset_index(drop=True)

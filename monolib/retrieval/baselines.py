@@ -1,0 +1,271 @@
+"""Image-only retrieval baselines (no graph): they embed the RGB frame directly.
+
+- `color_hist`: a global HSV colour histogram, no training (calibration baseline).
+- `orb_bow`: ORB keypoints + a bag of visual words learnt on the training split, tf-idf weighted, L2-normalised
+  (the classic hand-crafted place-recognition descriptor).
+- `image_triplet`: the "texture-based" learnt global descriptor the paper argues against indoors: a small CNN on
+  the RGB frame, trained from scratch with the GCN's triplet loss, triplets, data split and budget.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+from torch import nn
+
+from monolib.device import device, seed_everything
+from monolib.retrieval.gcn import EarlyStopping, draw_triplets
+
+log = logging.getLogger(__name__)
+
+HIST_BINS = (8, 4, 4)  # hue, saturation, value
+
+
+def _rgb(frame) -> np.ndarray:
+    """A frame's uint8 RGB image; a frame without colour file reads as a black image of the dataset size."""
+    rgb = frame.rgb
+    if rgb is None:
+        h, w = frame.depth_meters.shape
+        rgb = np.zeros((h, w, 3), np.uint8)
+    return np.ascontiguousarray(rgb)
+
+
+def color_hist(rgb: np.ndarray) -> np.ndarray:
+    """Global HSV colour histogram of a uint8 RGB image, L1-normalised then square-rooted (Hellinger), so that
+    Euclidean distance between descriptors is a proper histogram distance."""
+    hsv = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2HSV)
+    hist = cv2.calcHist([hsv], [0, 1, 2], None, list(HIST_BINS), [0, 180, 0, 256, 0, 256]).ravel()
+    hist /= max(hist.sum(), 1.0)
+    return np.sqrt(hist).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------------- ORB + BoW
+
+ORB_FEATURES = 500
+ORB_MIN_WIDTH = 256        # smaller images are upscaled first: ORB's 31-pixel patches leave little of a 128-px frame
+BOW_WORDS = 192
+BOW_SAMPLE = 10_000        # descriptors used to learn the vocabulary (seeded subsample)
+KMEANS_ITERS = 10
+
+
+def orb_descriptors(rgb: np.ndarray, n_features: int = ORB_FEATURES) -> np.ndarray:
+    """(n, 256) float32 0/1: the unpacked bits of the ORB descriptors of the grey image (n may be 0)."""
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+    if grey.shape[1] < ORB_MIN_WIDTH:
+        f = ORB_MIN_WIDTH / grey.shape[1]
+        grey = cv2.resize(grey, (ORB_MIN_WIDTH, round(grey.shape[0] * f)), interpolation=cv2.INTER_LINEAR)
+    orb = cv2.ORB_create(nfeatures=n_features)
+    _, desc = orb.detectAndCompute(grey, None)
+    if desc is None or len(desc) == 0:
+        return np.zeros((0, 256), np.float32)
+    return np.unpackbits(desc, axis=1).astype(np.float32)
+
+
+@dataclass
+class BagOfWords:
+    """A visual vocabulary (k, 256) and the idf weight of each word, both learnt on training images."""
+    centres: np.ndarray
+    idf: np.ndarray
+
+    def assign(self, desc: np.ndarray) -> np.ndarray:
+        """Nearest word of each descriptor (squared Euclidean on the bits = Hamming for binary centres)."""
+        d = (self.centres ** 2).sum(1)[None, :] - 2.0 * desc @ self.centres.T
+        return d.argmin(1)
+
+    def counts(self, desc: np.ndarray) -> np.ndarray:
+        if len(desc) == 0:
+            return np.zeros(len(self.centres), np.float32)
+        return np.bincount(self.assign(desc), minlength=len(self.centres)).astype(np.float32)
+
+    def describe(self, desc: np.ndarray) -> np.ndarray:
+        """tf-idf histogram, L2-normalised (Euclidean distance then ranks like cosine); zero without keypoints."""
+        c = self.counts(desc)
+        if c.sum() == 0:
+            return c
+        v = c / c.sum() * self.idf
+        n = np.linalg.norm(v)
+        return (v / n if n > 0 else v).astype(np.float32)
+
+
+def learn_vocabulary(train_desc: list[np.ndarray], seed: int, words: int = BOW_WORDS,
+                     sample: int = BOW_SAMPLE) -> BagOfWords:
+    """k-means (cv2.kmeans, k-means++ init, seeded) on a seeded subsample of the training descriptors; idf from
+    the training images' word occurrences."""
+    all_desc = np.concatenate([d for d in train_desc if len(d)] or [np.zeros((0, 256), np.float32)])
+    if len(all_desc) == 0:
+        raise ValueError("orb_bow: no ORB keypoint in any training image")
+    rng = np.random.default_rng(seed)
+    if len(all_desc) > sample:
+        all_desc = all_desc[np.sort(rng.choice(len(all_desc), sample, replace=False))]
+    k = min(words, len(all_desc))
+    cv2.setRNGSeed(int(seed))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, KMEANS_ITERS, 1e-3)
+    _, _, centres = cv2.kmeans(np.ascontiguousarray(all_desc), k, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
+    bow = BagOfWords(centres.astype(np.float32), np.ones(k, np.float32))
+    df = np.zeros(k)
+    for d in train_desc:
+        df += bow.counts(d) > 0
+    bow.idf = np.log(len(train_desc) / np.maximum(df, 1.0)).astype(np.float32)
+    return bow
+
+
+def orb_bow_embed(selection, seed: int, words: int = BOW_WORDS):
+    """(test embeddings, extra info) for `orb_bow`: vocabulary + idf from the training split (train + val)."""
+    t = time.perf_counter()
+    train_desc = [orb_descriptors(_rgb(f)) for f in selection.train + selection.val]
+    bow = learn_vocabulary(train_desc, seed, words)
+    vocab_s = time.perf_counter() - t
+    test_desc = [orb_descriptors(_rgb(f)) for f in selection.test]
+    emb = np.stack([bow.describe(d) for d in test_desc]) if test_desc else np.zeros((0, len(bow.centres)), np.float32)
+    extra = {"bow_words": int(len(bow.centres)), "vocab_s": vocab_s,
+             "train_keypoints_mean": float(np.mean([len(d) for d in train_desc])),
+             "test_keypoints_mean": float(np.mean([len(d) for d in test_desc])) if test_desc else 0.0,
+             "test_no_keypoints": int(sum(len(d) == 0 for d in test_desc))}
+    return emb.astype(np.float32), extra
+
+
+# ------------------------------------------------------------------------------------------ CNN + triplet loss
+
+CNN_SIZE = (48, 64)               # (height, width) the frames are resized to
+CNN_STEM = 32                     # a 4x4 stride-4 "patchify" conv block first (cheap on a CPU) ...
+CNN_CHANNELS = (64, 128, 128)     # ... then one 3x3 stride-2 conv block each
+CNN_OUT = 64
+
+
+def _block(c_in: int, c_out: int, kernel: int, stride: int, padding: int) -> list[nn.Module]:
+    return [nn.Conv2d(c_in, c_out, kernel, stride, padding, bias=False), nn.BatchNorm2d(c_out), nn.ReLU(inplace=True)]
+
+
+class ImageEncoder(nn.Module):
+    """Conv-BN-ReLU blocks (a 4x4 stride-4 stem, then 3x3 stride-2), global average pool, Linear to `out`.
+
+    At 48x64 input: 12x16 after the stem, 2x2 after the last block; about 0.26 M parameters."""
+
+    def __init__(self, stem: int = CNN_STEM, channels=CNN_CHANNELS, out: int = CNN_OUT):
+        super().__init__()
+        layers = _block(3, stem, 4, 4, 0)
+        for c_in, c in zip((stem,) + tuple(channels[:-1]), channels):
+            layers += _block(c_in, c, 3, 2, 1)
+        self.features = nn.Sequential(*layers)
+        self.lin = nn.Linear(channels[-1], out)
+        self.out_channels = out
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.lin(self.features(x).mean(dim=(2, 3)))
+
+
+def image_tensor(frames, size=CNN_SIZE) -> torch.Tensor:
+    """(N, 3, H, W) uint8: the frames resized (area interpolation), cached in memory."""
+    h, w = size
+    out = np.zeros((len(frames), h, w, 3), np.uint8)
+    for i, f in enumerate(frames):
+        out[i] = cv2.resize(_rgb(f), (w, h), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(out).permute(0, 3, 1, 2).contiguous()
+
+
+def _normalise(x: torch.Tensor) -> torch.Tensor:
+    return (x.float() / 255.0 - 0.5) / 0.25
+
+
+def _augment(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    """Random horizontal flip and colour jitter (global brightness, per-channel gain, contrast) of a float batch
+    in [0, 1]."""
+    n = len(x)
+    flip = torch.rand(n, generator=gen) < 0.5
+    x = torch.where(flip[:, None, None, None], x.flip(3), x)
+    bright = 1.0 + (torch.rand(n, 1, 1, 1, generator=gen) - 0.5) * 0.4   # x0.8 .. x1.2
+    gain = 1.0 + (torch.rand(n, 3, 1, 1, generator=gen) - 0.5) * 0.1     # +-5 % per channel
+    contrast = 1.0 + (torch.rand(n, 1, 1, 1, generator=gen) - 0.5) * 0.4
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    return ((x - mean) * contrast + mean).mul(bright * gain).clamp(0.0, 1.0)
+
+
+def cnn_embed(model: ImageEncoder, images: torch.Tensor, batch_size: int = 256) -> torch.Tensor:
+    """(N, out) embeddings of a uint8 image tensor, in order (eval mode), on the CPU (the model runs on the
+    device of its weights)."""
+    model.eval()
+    dev = next(model.parameters()).device
+    with torch.inference_mode():
+        out = [model(_normalise(images[s : s + batch_size].to(dev))).cpu() for s in range(0, len(images), batch_size)]
+    return torch.cat(out) if out else torch.zeros((0, model.out_channels))
+
+
+@dataclass
+class CNNResult:
+    model: ImageEncoder
+    history: list
+    best_epoch: int
+    seconds: float
+
+
+def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tensor, val_settings, spec, seed: int,
+              threads: int = 2, augment: bool = True, deterministic: bool = True) -> CNNResult:
+    """The GCN's training loop (`monolib.retrieval.gcn.train`) with an image encoder: Adam, triplet margin loss, fresh
+    per-setting triplets each epoch, early stopping on validation leave-one-out recall@1, best state kept."""
+    torch.set_num_threads(threads)
+    gen = seed_everything(int(seed), deterministic)
+    rng = np.random.default_rng(seed)
+    dev = device()
+    model = ImageEncoder().to(dev)
+    opt = torch.optim.Adam(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
+    loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
+    settings, val_settings = np.asarray(train_settings), np.asarray(val_settings)
+    stopper = EarlyStopping(spec.patience, seed, model)
+    t0 = time.perf_counter()
+    for epoch in range(1, spec.epochs + 1):
+        model.train()
+        a, p, n = draw_triplets(settings, rng)
+        perm = rng.permutation(len(a))
+        losses = []
+        for s in range(0, len(perm), spec.batch_size):
+            idx = perm[s : s + spec.batch_size]
+            b = len(idx)
+            x = train_images[torch.from_numpy(np.concatenate([a[idx], p[idx], n[idx]]))].float() / 255.0
+            if augment:
+                x = _augment(x, gen)
+            z = model(((x - 0.5) / 0.25).to(dev))
+            loss = loss_fn(z[:b], z[b : 2 * b], z[2 * b :])
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(loss.item() * b)
+        train_loss = sum(losses) / len(a)
+        val_emb = cnn_embed(model, val_images) if len(val_images) else None
+        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn):
+            break
+    model.load_state_dict(stopper.best_state)
+    return CNNResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)
+
+
+def image_triplet_embed(study, selection, seed: int, spec=None):
+    """(test embeddings, extra, history, state) for `image_triplet`; `spec` defaults to the study's GCN spec."""
+    spec = spec or study.gcn
+    t = time.perf_counter()
+    tr, va, te = (image_tensor(fs) for fs in (selection.train, selection.val, selection.test))
+    load_s = time.perf_counter() - t
+    result = train_cnn(tr, [f.setting for f in selection.train], va, [f.setting for f in selection.val], spec, seed,
+                       threads=study.threads, deterministic=study.deterministic)
+    emb = cnn_embed(result.model, te).numpy().astype(np.float32)
+    extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history), "train_s": result.seconds,
+             "load_s": load_s, "input_size": list(CNN_SIZE), "channels": [CNN_STEM, *CNN_CHANNELS],
+             "parameters": int(sum(p.numel() for p in result.model.parameters()))}
+    state = {k: v.detach().cpu() for k, v in result.model.state_dict().items()}  # loadable on any machine
+    return emb, extra, pd.DataFrame(result.history), state
+
+
+def embed(method: str, study, selection, seed: int):
+    """Embeddings of `selection.test` for an image method: (emb (N, D) float32, extra info for cell.json,
+    training history DataFrame or None, model state dict or None)."""
+    if method == "color_hist":
+        return np.stack([color_hist(_rgb(f)) for f in selection.test]), {}, None, None
+    if method == "orb_bow":
+        emb, extra = orb_bow_embed(selection, seed)
+        return emb, extra, None, None
+    if method == "image_triplet":
+        return image_triplet_embed(study, selection, seed)
+    raise KeyError(f"image method {method!r}: no embedding function in monolib.retrieval.baselines")

@@ -1,0 +1,248 @@
+"""One cell of the ablation grid: (method, scenario, threshold, seed) -> train, embed, retrieve, write files.
+
+`notebooks/ablation_cell.ipynb` calls `run_cell`; so do the tests. A cell writes into its folder:
+`cell.json` (written last: its presence means the cell is complete; ``metrics`` per protocol), `rankings.csv` (top
+10 per query and protocol), `protocol.csv` (which test frames were queries / positives in each protocol), both with
+a leading ``protocol`` column (``paper``, ``siblings``: `monolib.retrieval.evaluate.evaluate_protocols`, one trained encoder
+evaluated on both), `embeddings.npy` (every test frame) and, for trained methods,
+`history.csv` and `model.pt` (the encoder's weights, used by `monolib index`). A cell whose graphs equal those of
+a smaller threshold (`monolib.study.runner.same_graphs`) is a copy of that cell's files, and its `cell.json` says so
+(`same_graphs_as`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import shutil
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import pandas as pd
+import torch
+
+from monolib import methods, paths
+from monolib.data import selection, stage as dataset
+from monolib.device import device
+from monolib.graphs import build as graph, stage as scenegraphs
+from monolib.io import (
+    atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
+)
+from monolib.params import Study, StudyError, key_of
+from monolib.retrieval import baselines, evaluate, gcn, metrics
+from monolib.versions import code_version, library_versions
+
+log = logging.getLogger(__name__)
+IMAGE_SCENARIO = "rgb"  # image methods use neither the scenario's sources nor the threshold
+
+
+def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None) -> Path:
+    return Path(out_dir) if out_dir else paths.cell_dir(study.name, method, scenario, threshold, seed)
+
+
+def inputs_key(study: Study, method: str, scenario: str) -> str:
+    """The key of what a cell reads: its scenario's graphs (the graph stage's `scenario_key`) for a graph method,
+    the frames (the data stage's `dataset_key`) for an image method."""
+    if methods.kind(method, study) == "graph":
+        return scenegraphs.scenario_key(study, scenario)
+    return dataset.dataset_key(study)
+
+
+def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: int,
+             inputs: Optional[str] = None) -> str:
+    """Cache key of a cell: its inputs' key (`inputs_key`, passed on by a caller that holds it), what it
+    computes (a graph method's encoder settings, whatever its name; an image method's name), threshold, seed, the
+    protocol's draw and the depth of its rankings (not the k of the metrics: any k up to that depth is recomputed
+    from the rankings, `refresh_metrics`), the torch threads, device, deterministic mode, and the version of the
+    cells' code and libraries."""
+    graph_method = methods.kind(method, study) == "graph"
+    inputs = inputs if inputs is not None else inputs_key(study, method, scenario)
+    pr = study.protocol
+    return key_of({"inputs": inputs, "method": None if graph_method else method,
+                   "encoder": dataclasses.asdict(study.gcn_spec(method)),  # (an image encoder trains on its schedule)
+                   "threshold": paths.threshold_json(threshold) if graph_method else None, "seed": int(seed),
+                   "protocol": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
+                                "frames": pr.frames, "queries": pr.queries, "positives": pr.positives,
+                                "ranked": evaluate.ranking_depth(pr)},
+                   "val": study.gcn.val_settings, "threads": study.threads, "device": device().type,
+                   "deterministic": study.deterministic, "code": code_version("cells"),
+                   "libraries": library_versions("cells")})
+
+
+def refresh_metrics(folder: Path, study: Study, record: Optional[dict] = None) -> dict:
+    """The record of a complete cell with exactly the metrics the study reports: recall@k and precision@k of k
+    values the cell was not made with are computed from its rankings (the top `evaluate.ranking_depth`, part of
+    its key; `metrics.metrics_from_rankings`, the definition `evaluate` used), and the record rewritten; a change
+    of the reported k trains nothing. `record`: the cell's record, when the caller has read it."""
+    record = record if record is not None else read_json(Path(folder) / "cell.json")
+    pr = study.protocol
+    want = set(metrics.metric_names(pr.recall_k, pr.precision_k))
+    if all(set(m) == want for m in record["metrics"].values()):
+        return record
+    rankings = pd.read_csv(Path(folder) / "rankings.csv")
+    record["metrics"] = {name: metrics.metrics_from_rankings(rankings[rankings["protocol"] == name], pr.recall_k,
+                                                              pr.precision_k) for name in record["metrics"]}
+    write_json(Path(folder) / "cell.json", record)
+    log.info("cell %s: metrics at k %s recomputed from its rankings", folder, sorted(want))
+    return record
+
+
+def read_record(folder: Path) -> Optional[dict]:
+    """A cell's `cell.json` through the one cache loader (`monolib.io.load_cached`): None when absent or unreadable
+    (an unreadable one is removed with a warning, so the cell runs again)."""
+    return load_cached(Path(folder) / "cell.json", lambda p: read_json_dict(p, ("metrics", "method")), "cell record")
+
+
+def aside(folder: Path, key: str) -> Path:
+    """Where the cell of `key` waits while a cell of another key holds its folder:
+    ``cells/.aside/<method>/<name>@<key>/`` (out of the way of every reader of ``cells/<method>/<name>/``)."""
+    folder = Path(folder)
+    return folder.parent.parent / ".aside" / folder.parent.name / f"{folder.name}@{key}"
+
+
+def claim(folder: Path, key: str) -> Optional[dict]:
+    """Make `folder` the cell of `key` without losing the cell of another key that holds it: another study file of
+    the same name (other GCN settings), the same study on another device or with other code. That cell is moved
+    aside (`aside`: nothing it wrote is deleted), and a cell of `key` kept aside earlier moves back.
+    The cell's record when `folder` now holds the complete cell of `key`; otherwise None, and `folder` is absent,
+    ready for it.
+    Files of no complete cell (a killed run's) are removed. The study's lock (`monolib.locks`) keeps two runs of
+    one study from claiming at once."""
+    folder = Path(folder)
+    record = read_record(folder)
+    if record is not None and record.get("key") == key:
+        return record
+    held = str(record["key"]) if record is not None and record.get("key") else None
+    move_aside(folder, aside(folder, held) if held else None)  # (an older copy of that key's cell: replaced)
+    if held:
+        log.info("cell %s: a cell of key %s kept aside in %s", folder, held, aside(folder, held).name)
+    mine = aside(folder, key)
+    if mine.is_dir() and is_complete(mine, key):
+        folder.parent.mkdir(parents=True, exist_ok=True)
+        os.replace(mine, folder)
+        log.info("cell %s: its cell of key %s moved back from %s", folder, key, mine.name)
+        return read_record(folder)
+    return None
+
+
+def is_complete(folder: Path, key: Optional[str] = None) -> bool:
+    """The cell's record is there and readable and, when `key` is given, was made by this key (the same inputs,
+    settings and code): a cell of older code or other graphs is not complete."""
+    record = read_record(folder)
+    if record is None:
+        return False
+    if key is not None and record.get("key") != key:
+        log.info("cell %s: made with key %s, expected %s: runs again", folder, record.get("key"), key)
+        return False
+    return True
+
+
+def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None,
+             force: bool = False) -> dict:
+    """Run one cell and return its `cell.json` content (read back when the cell is already complete)."""
+    threshold = float(threshold)
+    if method not in methods.METHODS and method not in study.variants:
+        known = sorted(methods.METHODS) + sorted(study.variants)
+        raise StudyError(f"method {method!r}: unknown (known: {', '.join(known)})")
+    kind = methods.kind(method, study)
+    if kind == "graph" and scenario not in study.scenarios:
+        raise StudyError(f"scenario {scenario!r}: not in {study.path} (scenarios: {', '.join(study.scenarios)})")
+    if not threshold >= 0:
+        raise StudyError(f"threshold {threshold}: expected 0 (no edges), a distance in metres > 0, or inf")
+    folder = cell_folder(study, method, scenario, threshold, seed, out_dir)
+    inputs = inputs_key(study, method, scenario)  # the graph stage's key (the data stage's for an image method)
+    key = cell_key(study, method, scenario, threshold, seed, inputs)
+    if force:
+        record = None
+    elif out_dir is None:
+        record = claim(folder, key)  # a cell of another key in the folder: kept aside, not lost
+    else:
+        record = read_record(folder) if is_complete(folder, key) else None
+    if record is not None:
+        log.info("cell %s already complete", folder)
+        return refresh_metrics(folder, study, record)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "cell.json").unlink(missing_ok=True)  # (an `out_dir` of the caller's, or `force`): written anew
+    torch.set_num_threads(study.threads)
+    timings: dict[str, float] = {}
+    history = None
+
+    t = time.perf_counter()
+    if kind == "graph":
+        spec = study.gcn_spec(method)
+        graphs = scenegraphs.load(study, scenario, key=inputs)
+        both = spec.edges == "both"
+        split = {k: [graph.at_threshold(g, threshold, both) for g in v] for k, v in graphs.items()}
+        timings["graphs_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads,
+                           deterministic=study.deterministic)
+        history = pd.DataFrame(result.history)
+        timings["train_s"] = time.perf_counter() - t
+        t = time.perf_counter()
+        emb = gcn.embed(result.model, split["test"]).numpy()
+        state = {k: v.detach().cpu() for k, v in result.model.state_dict().items()}  # loadable on any machine
+        test = split["test"]
+        frames, settings = [g.frame for g in test], [g.setting for g in test]
+        extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history),
+                 "test_nodes_mean": float(np.mean([g.num_nodes for g in test])),
+                 "test_edges_mean": float(np.mean([g.edge_index.shape[1] for g in test])),
+                 "test_empty_graphs": int(sum(g.num_nodes == 0 for g in test))}
+    else:
+        ds = dataset.open_dataset(study)
+        sel = selection.select_frames(study, ds, study.gcn.val_settings)
+        timings["graphs_s"] = 0.0
+        t = time.perf_counter()
+        emb, extra, history, state = baselines.embed(method, study, sel, seed)
+        frames, settings = [f.key for f in sel.test], [f.setting for f in sel.test]
+    timings["embed_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    evaluated = evaluate.evaluate_protocols(emb, frames, settings, study.protocol, seed)
+    timings["retrieval_s"] = time.perf_counter() - t
+
+    sc = study.scenarios.get(scenario)
+    record = {
+        "method": method, "kind": kind, "key": key,
+        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario, "threshold": paths.threshold_json(threshold),
+        "seed": int(seed), "study": study.name, "study_file": study.path,
+        "scenario_label": sc.label if sc else "RGB only (no graph)",
+        "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
+        "protocol": {"settings": study.protocol.settings, "siblings": study.protocol.siblings,
+                     "frames": study.protocol.frames, "queries": study.protocol.queries,
+                     "positives": study.protocol.positives},
+        "protocols": {name: {"settings": r.settings, "draw_seed": r.seed} for name, r in evaluated.items()},
+        "metrics": {name: r.metrics for name, r in evaluated.items()}, "timings": timings, **extra,
+    }
+    write_text(folder / "rankings.csv", pd.concat([r.rankings for r in evaluated.values()]).to_csv(index=False))
+    write_text(folder / "protocol.csv",
+               pd.concat([r.protocol_table() for r in evaluated.values()]).to_csv(index=False))
+    with atomic_path(folder / "embeddings.npy") as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, np.asarray(emb, dtype=np.float32))
+    if history is not None:
+        write_text(folder / "history.csv", history.to_csv(index=False))
+    if state is not None:
+        save_torch(folder / "model.pt", state)
+    write_json(folder / "cell.json", record)  # last: marks the cell complete
+    return record
+
+
+def copy_cell(source: Path, folder: Path, threshold: float, source_name: str, key: Optional[str] = None) -> dict:
+    """The results of the cell in `source` as those of `threshold` (the two have identical scene graphs): its files
+    copied, `cell.json` with this threshold and ``same_graphs_as`` naming the source (written last, as always)."""
+    t = time.perf_counter()
+    record = read_json(source / "cell.json")
+    folder.mkdir(parents=True, exist_ok=True)
+    for f in source.iterdir():
+        if f.is_file() and f.name != "cell.json" and not f.name.startswith("."):  # not a killed write's temp file
+            with atomic_path(folder / f.name) as tmp:
+                shutil.copyfile(f, tmp)
+    record.update(threshold=paths.threshold_json(threshold), same_graphs_as=source_name,
+                  timings={"copy_s": time.perf_counter() - t})
+    if key is not None:
+        record["key"] = key  # this cell's own key (its threshold), so that `is_complete(folder, key)` holds
+    write_json(folder / "cell.json", record)
+    return record

@@ -1,0 +1,332 @@
+"""The graph encoder (paper section 2, "Graph Neural Network"): GCN + triplet loss, trained per setting.
+
+Encoder: 5 GCNConv layers of 128 channels (each followed by ReLU), a linear layer to 64, global max pooling.
+Triplets (paper): every training graph is an anchor once per epoch; its positive is a random other graph of the
+same setting, its negative a random graph of another setting; drawn afresh each epoch from the seed.
+"""
+from __future__ import annotations
+
+import copy
+import logging
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch_geometric.data import Data
+from torch_geometric.nn import GATv2Conv, GCNConv, GINEConv, global_max_pool, global_mean_pool
+from torch_geometric.nn.conv.gcn_conv import gcn_norm
+
+from monolib.data.labels import NUM_CLASSES
+from monolib.device import device, seed_everything
+from monolib.graphs.build import NODE_FEATURES
+from monolib.params import GCNSpec
+
+log = logging.getLogger(__name__)
+
+
+def ragged_arange(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
+    """The concatenation of arange(start, start + count) for each pair, without a Python loop."""
+    total = int(counts.sum())
+    begin = torch.cumsum(counts, 0) - counts  # where each run begins in the output
+    return torch.repeat_interleave(starts - begin, counts, output_size=total) + torch.arange(total, device=starts.device)
+
+
+@dataclass
+class GraphBatch:
+    """The fields of a `torch_geometric.data.Batch` that the encoder reads."""
+    x: torch.Tensor
+    edge_index: torch.Tensor
+    edge_attr: Optional[torch.Tensor]
+    batch: torch.Tensor
+    num_graphs: int
+
+    def to(self, device) -> "GraphBatch":
+        move = lambda t: None if t is None else t.to(device)  # noqa: E731
+        return GraphBatch(move(self.x), move(self.edge_index), move(self.edge_attr), move(self.batch), self.num_graphs)
+
+
+class GraphPool:
+    """The graphs of one split held as one set of tensors, so that a batch of them is a few index operations
+    instead of `Batch.from_data_list` over Python objects (about a sixth of a quick cell's training). A batch holds
+    the same tensors as `Batch.from_data_list` of the same graphs, bit for bit: nodes and edges in list order, each
+    graph's edge indices shifted by the nodes of the graphs before it (tests/test_gcn.py compares the two)."""
+
+    def __init__(self, graphs: list[Data]):
+        if not graphs:
+            raise ValueError("a pool of graphs needs at least one graph")
+        self.size = len(graphs)
+        self.num_nodes = torch.tensor([g.num_nodes for g in graphs], dtype=torch.long)
+        self.num_edges = torch.tensor([g.edge_index.shape[1] for g in graphs], dtype=torch.long)
+        self.x = torch.cat([g.x for g in graphs])
+        self.edge_index = torch.cat([g.edge_index for g in graphs], dim=1)
+        with_attr = [getattr(g, "edge_attr", None) is not None for g in graphs]
+        if any(with_attr) and not all(with_attr):
+            raise ValueError("some graphs have edge_attr and some have not: build every graph of a split alike")
+        self.edge_attr = torch.cat([g.edge_attr for g in graphs]) if all(with_attr) else None
+        self.node_start = torch.cumsum(self.num_nodes, 0) - self.num_nodes
+        self.edge_start = torch.cumsum(self.num_edges, 0) - self.num_edges
+
+    def batch(self, idx) -> GraphBatch:
+        """The graphs `idx` (in that order, repeats allowed) as one batch."""
+        idx = torch.as_tensor(np.asarray(idx), dtype=torch.long)
+        n, e = self.num_nodes[idx], self.num_edges[idx]
+        nodes = ragged_arange(self.node_start[idx], n)
+        edges = ragged_arange(self.edge_start[idx], e)
+        shift = torch.repeat_interleave(torch.cumsum(n, 0) - n, e, output_size=int(e.sum()))
+        return GraphBatch(x=self.x[nodes], edge_index=self.edge_index[:, edges] + shift,
+                          edge_attr=None if self.edge_attr is None else self.edge_attr[edges],
+                          batch=torch.repeat_interleave(torch.arange(len(idx)), n, output_size=int(n.sum())),
+                          num_graphs=len(idx))
+
+
+SPARSE_DEVICES = ("cpu", "cuda")  # where torch multiplies a sparse CSR matrix (not `meta`, not every backend)
+
+
+def normalised_adjacency(edge_index: torch.Tensor, weight: Optional[torch.Tensor], num_nodes: int,
+                         dtype: torch.dtype) -> tuple:
+    """GCNConv's normalised adjacency (self-loops added, D^-1/2 A D^-1/2: PyG's own `gcn_norm`), computed once per
+    batch for all five layers instead of once per layer: the arguments of each layer after the features. Where
+    torch has sparse products (`SPARSE_DEVICES`) a sparse CSR matrix, transposed as PyG's `adj_t`, and each layer's
+    propagation is one sparse-dense product instead of a gather and a scatter over the edges (a quick cell trains in
+    about 0.65 of the time; its sums run in another order than the scatter's, so the weights differ from the
+    edge-list path in the last bits, and are as reproducible); elsewhere the edge list and its weights."""
+    index, value = gcn_norm(edge_index, weight, num_nodes, False, True, "source_to_target", dtype)
+    if index.device.type not in SPARSE_DEVICES:
+        return index, value
+    with warnings.catch_warnings():  # "Sparse CSR tensor support is in beta": CSR @ dense and its backward are used
+        warnings.simplefilter("ignore", UserWarning)
+        return (torch.sparse_coo_tensor(index.flip(0), value, (num_nodes, num_nodes),
+                                        check_invariants=False).coalesce().to_sparse_csr(),)
+
+
+class GraphEncoder(nn.Module):
+    """The paper's encoder by default; `GCNSpec`'s choice fields switch the variants of the encoder ablation."""
+
+    def __init__(self, spec: GCNSpec, in_channels: int = NODE_FEATURES):
+        super().__init__()
+        self.spec = spec
+        label_dim = {"raw": 1, "embedding": 16, "onehot": NUM_CLASSES + 1}[spec.label]
+        if spec.label == "embedding":
+            self.label_embedding = nn.Embedding(NUM_CLASSES + 1, 16)
+        self.register_buffer("colour_mean", torch.zeros(in_channels - 1))
+        self.register_buffer("colour_std", torch.ones(in_channels - 1))
+        dims = [label_dim + in_channels - 1] + [spec.hidden] * spec.layers
+        if not spec.linear:
+            dims[-1] = spec.out
+        self.convs = nn.ModuleList(self._conv(a, b) for a, b in zip(dims[:-1], dims[1:]))
+        self.lin = nn.Linear(spec.hidden, spec.out) if spec.linear else None
+        self.out_channels = spec.out * (2 if spec.pooling == "meanmax" else 1)
+
+    def _conv(self, a: int, b: int) -> nn.Module:
+        if self.spec.conv == "gine":
+            return GINEConv(nn.Sequential(nn.Linear(a, b), nn.ReLU(), nn.Linear(b, b)), edge_dim=1)
+        if self.spec.conv == "gatv2":
+            return GATv2Conv(a, b, heads=1, edge_dim=1)
+        return GCNConv(a, b, normalize=False)  # `normalised_adjacency`, once per batch in `forward`
+
+    def set_colour_stats(self, graphs: list[Data]) -> None:
+        """Training-set mean and std of the colour features (used when `colour: standardised`)."""
+        xs = [g.x[:, 1:] for g in graphs if g.num_nodes]
+        if xs:
+            c = torch.cat(xs)
+            self.colour_mean.copy_(c.mean(0))
+            self.colour_std.copy_(c.std(0).clamp_min(1e-6))
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        label, colour = x[:, :1], x[:, 1:]
+        if self.spec.label == "embedding":
+            label = self.label_embedding(label[:, 0].long().clamp(0, NUM_CLASSES))
+        elif self.spec.label == "onehot":
+            label = F.one_hot(label[:, 0].long().clamp(0, NUM_CLASSES), NUM_CLASSES + 1).float()
+        if self.spec.colour == "standardised":
+            colour = (colour - self.colour_mean) / self.colour_std
+        return torch.cat([label, colour], dim=1)
+
+    def forward(self, batch: GraphBatch) -> torch.Tensor:
+        """(num_graphs, out) embeddings of a `GraphBatch` or a `torch_geometric.data.Batch`."""
+        h = self.features(batch.x)
+        length = batch.edge_attr if batch.edge_attr is not None else batch.x.new_zeros((batch.edge_index.shape[1], 1))
+        if self.spec.conv not in ("gine", "gatv2"):
+            weight = 1.0 / (1.0 + length[:, 0]) if self.spec.edge_weight == "inverse" else None
+            adjacency = normalised_adjacency(batch.edge_index, weight, h.size(0), h.dtype)
+        for i, conv in enumerate(self.convs):
+            if self.spec.conv in ("gine", "gatv2"):
+                h = conv(h, batch.edge_index, length)
+            else:
+                h = conv(h, *adjacency)
+            if i < len(self.convs) - 1 or self.lin is not None:  # no ReLU on a last conv that maps to the output
+                h = h.relu()
+        if self.lin is not None:
+            h = self.lin(h)
+        # size= makes an empty graph (no node) a zero vector instead of a missing row
+        pooled = global_max_pool(h, batch.batch, size=batch.num_graphs)
+        if self.spec.pooling == "meanmax":
+            pooled = torch.cat([global_mean_pool(h, batch.batch, size=batch.num_graphs), pooled], dim=1)
+        return pooled
+
+
+def draw_triplets(settings: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(anchor, positive, negative) index arrays: every graph is an anchor once, vectorised over anchors.
+
+    A setting with a single graph uses the anchor itself as its positive.
+    """
+    settings = np.asarray(settings)
+    n = len(settings)
+    order = np.argsort(settings, kind="stable")
+    _, group_of_sorted, sizes = np.unique(settings[order], return_inverse=True, return_counts=True)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    pos_in_group = np.arange(n) - starts[group_of_sorted]
+    size = sizes[group_of_sorted]
+    # positive: another member of the group (offset 1..size-1), or itself for a singleton
+    offset = np.where(size > 1, rng.integers(1, np.maximum(size, 2)), 0)
+    positive_sorted = starts[group_of_sorted] + (pos_in_group + offset) % size
+    # negative: a rank among the n - size graphs of other settings, shifted past the anchor's own group
+    if (n - size <= 0).any():
+        raise ValueError("triplets need graphs of at least two settings")
+    r = rng.integers(0, n - size)
+    negative_sorted = np.where(r >= starts[group_of_sorted], r + size, r)
+    anchor = order
+    return anchor, order[positive_sorted], order[negative_sorted]
+
+
+def batch_hard_batches(settings: np.ndarray, batch_size: int, rng: np.random.Generator, per_setting: int = 4) -> list[np.ndarray]:
+    """Batches of `per_setting` graphs from each of batch_size // per_setting random settings (P x K sampling),
+    covering about every graph once per epoch."""
+    settings = np.asarray(settings)
+    names = np.unique(settings)
+    members = {n: rng.permutation(np.flatnonzero(settings == n)) for n in names}
+    p = max(2, batch_size // per_setting)
+    batches = []
+    for _ in range(max(1, len(settings) // (p * per_setting))):
+        chosen = rng.choice(names, size=min(p, len(names)), replace=False)
+        batches.append(np.concatenate([rng.choice(members[n], size=per_setting, replace=len(members[n]) < per_setting)
+                                       for n in chosen]))
+    return batches
+
+
+def batch_hard_loss(z: torch.Tensor, settings: np.ndarray, margin: float) -> torch.Tensor:
+    """Triplet loss with the hardest positive and the hardest negative of each anchor within the batch."""
+    codes = torch.as_tensor(np.unique(settings, return_inverse=True)[1], device=z.device)
+    d = torch.cdist(z, z)
+    same = codes[:, None] == codes[None, :]
+    eye = torch.eye(len(z), dtype=torch.bool, device=z.device)
+    hardest_pos = d.masked_fill(~same | eye, float("-inf")).amax(dim=1)
+    hardest_neg = d.masked_fill(same, float("inf")).amin(dim=1)
+    ok = torch.isfinite(hardest_pos) & torch.isfinite(hardest_neg)
+    return F.relu(hardest_pos[ok] - hardest_neg[ok] + margin).mean() if ok.any() else z.sum() * 0.0
+
+
+def embed(model: GraphEncoder, graphs: list[Data], batch_size: int = 256) -> torch.Tensor:
+    """(N, out) embeddings of graphs, in order, on the CPU (the model runs on the device of its weights)."""
+    model.eval()
+    dev = next(model.parameters()).device
+    out = []
+    pool = GraphPool(graphs) if graphs else None
+    with torch.inference_mode():
+        for start in range(0, len(graphs), batch_size):
+            out.append(model(pool.batch(np.arange(start, min(start + batch_size, len(graphs)))).to(dev)).cpu())
+    return torch.cat(out) if out else torch.zeros((0, model.out_channels))
+
+
+def leave_one_out_recall(emb: torch.Tensor, settings: np.ndarray) -> float:
+    """Share of graphs whose nearest other graph is of the same setting (validation metric)."""
+    d = torch.cdist(emb, emb)
+    d.fill_diagonal_(float("inf"))
+    nn_idx = d.argmin(dim=1).cpu().numpy()
+    return float((np.asarray(settings)[nn_idx] == np.asarray(settings)).mean())
+
+
+class EarlyStopping:
+    """Validation after each epoch (leave-one-out recall@1 on the validation settings, then triplet loss on fixed
+    validation triplets), the history, the best state, and the stop after `patience` epochs without progress.
+    Shared by every encoder trained with the triplet loss (graphs here, images in `monolib.retrieval.baselines`)."""
+
+    def __init__(self, patience: int, seed: int, model: nn.Module):
+        self.patience, self.seed = patience, seed
+        self.best = (-1.0, float("inf"))
+        self.best_state, self.best_epoch, self.bad_epochs = copy.deepcopy(model.state_dict()), 0, 0
+        self.history: list[dict] = []
+
+    def step(self, model: nn.Module, epoch: int, train_loss: float, val_emb, val_settings, loss_fn,
+             progress: bool = False) -> bool:
+        """Record the epoch; True when training should stop."""
+        val_settings = np.asarray(val_settings)
+        if val_emb is not None and len(set(val_settings)) > 1:
+            val_recall = leave_one_out_recall(val_emb, val_settings)
+            va, vp, vn = draw_triplets(val_settings, np.random.default_rng(self.seed + 1))
+            val_loss = float(loss_fn(val_emb[va], val_emb[vp], val_emb[vn]))
+        else:
+            val_recall, val_loss = float("nan"), train_loss
+        self.history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "val_recall@1": val_recall})
+        if progress:
+            log.info("epoch %d loss %.4f val loss %.4f val recall@1 %.3f", epoch, train_loss, val_loss, val_recall)
+        score = (0.0 if np.isnan(val_recall) else val_recall, -val_loss)
+        if score > (self.best[0], -self.best[1]):
+            self.best, self.best_epoch, self.bad_epochs = (score[0], val_loss), epoch, 0
+            self.best_state = copy.deepcopy(model.state_dict())
+            return False
+        self.bad_epochs += 1
+        return self.bad_epochs >= self.patience
+
+
+@dataclass
+class TrainResult:
+    model: GraphEncoder
+    history: list[dict] = field(default_factory=list)
+    best_epoch: int = 0
+    seconds: float = 0.0
+
+
+def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed: int, threads: int = 2,
+          progress: bool = False, deterministic: bool = True) -> TrainResult:
+    """Train the encoder with the triplet loss; keep the state with the best validation recall@1 (early stop)."""
+    torch.set_num_threads(threads)
+    seed_everything(seed, deterministic)
+    rng = np.random.default_rng(seed)
+    dev = device()
+    model = GraphEncoder(spec)
+    model.set_colour_stats(train_graphs)
+    model.to(dev)
+    opt = torch.optim.Adam(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
+    loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
+    settings = np.array([g.setting for g in train_graphs])
+    val_settings = np.array([g.setting for g in val_graphs])
+    stopper = EarlyStopping(spec.patience, seed, model)
+    pool = GraphPool(train_graphs)
+    t0 = time.perf_counter()
+    for epoch in range(1, spec.epochs + 1):
+        model.train()
+        losses, seen = [], 0
+        if spec.mining == "batch_hard":
+            for idx in batch_hard_batches(settings, spec.batch_size, rng):
+                z = model(pool.batch(idx).to(dev))
+                loss = batch_hard_loss(z, settings[idx], spec.margin)
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(loss.item() * len(idx))
+                seen += len(idx)
+        else:
+            a, p, n = draw_triplets(settings, rng)
+            perm = rng.permutation(len(a))
+            for s in range(0, len(perm), spec.batch_size):
+                idx = perm[s : s + spec.batch_size]
+                b = len(idx)
+                z = model(pool.batch(np.concatenate([a[idx], p[idx], n[idx]])).to(dev))
+                loss = loss_fn(z[:b], z[b : 2 * b], z[2 * b :])
+                opt.zero_grad()
+                loss.backward()
+                opt.step()
+                losses.append(loss.item() * b)
+                seen += b
+        train_loss = sum(losses) / max(seen, 1)
+        val_emb = embed(model, val_graphs) if len(val_graphs) else None
+        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn, progress):
+            break
+    model.load_state_dict(stopper.best_state)
+    return TrainResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)

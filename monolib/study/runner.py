@@ -1,0 +1,382 @@
+"""The study runner: dataset -> perception -> graphs -> the papermill grid of cells -> the report notebook.
+
+Every stage is cached by the parameters it depends on and skipped when its files exist, so a killed run is
+resumed by running the same command again, and changing a GCN setting redoes only the cells.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from concurrent.futures import as_completed
+from pathlib import Path
+
+from monolib import locks, methods, paths
+from monolib.data import stage as dataset
+from monolib.graphs import fidelity, stage as scenegraphs
+from monolib.io import write_json
+from monolib.params import Study, StudyError, load_study
+from monolib.perception import stage as perception
+from monolib.progress import tqdm
+from monolib.report import graph_sizes, readme, viz
+from monolib.retrieval.cell import IMAGE_SCENARIO, cell_key, claim, copy_cell, is_complete, refresh_metrics, run_cell
+from monolib.retrieval.grid import CellSpec, grid  # noqa: F401  (the grid: monolib.retrieval.grid; re-exported)
+from monolib.study import cluster, kernels
+
+log = logging.getLogger(__name__)
+CELL_NOTEBOOK = paths.NOTEBOOKS / "ablation_cell.ipynb"
+REPORT_NOTEBOOK = paths.NOTEBOOKS / "report.ipynb"
+
+
+def same_graphs(study: Study, cells: list[CellSpec], scenario_keys: dict[str, str] | None = None) -> dict[str, CellSpec]:
+    """{cell name: source cell} for the graph cells whose scene graphs equal those of a smaller threshold of the
+    same method, scenario and seed: no pair of nodes, in any frame of any split, has a length between the two
+    thresholds (edges only grow with the threshold, so equal edge totals mean equal graphs). Such a cell is the same
+    computation as its source (same graphs, encoder, seed), so the runner copies the source's results into it.
+    With predicted depth every pair is often closer than 5 m, and 5, 10 and inf give one graph set.
+    `scenario_keys`: the graph stage's keys, when the caller holds them."""
+    import torch
+
+    groups: dict[tuple, list[CellSpec]] = {}
+    for c in cells:
+        if methods.kind(c.method, study) == "graph":
+            groups.setdefault((c.method, c.scenario, c.seed), []).append(c)
+    lengths: dict[str, torch.Tensor] = {}
+    out = {}
+    for (_, scenario, _), group in groups.items():
+        if scenario not in lengths:
+            graphs = scenegraphs.load(study, scenario, key=(scenario_keys or {}).get(scenario))
+            lengths[scenario] = torch.cat([g.pair_len for split in graphs.values() for g in split] + [torch.zeros(0)])
+        by_threshold = {float(c.threshold): c for c in group}
+        for t, source in scenegraphs.identical_thresholds(lengths[scenario], by_threshold).items():
+            out[by_threshold[t].name] = by_threshold[source]
+    return out
+
+
+def check_notebook_parameters(notebook: Path, names: set[str]) -> None:
+    """Fail before any work when the grid sets a parameter the notebook does not declare."""
+    import papermill
+
+    declared = set(papermill.inspect_notebook(str(notebook)))
+    missing = sorted(names - declared)
+    if missing:
+        raise StudyError(f"{notebook}: no parameter named {', '.join(missing)} (declared: {', '.join(sorted(declared))})")
+
+
+class NotebookFailed(RuntimeError):
+    """A notebook run stopped: which notebook cell raised what, and where the executed notebook (with the full
+    traceback) is. One plain message, so that it pickles back from a worker process and reads in a log."""
+
+
+def kernel_config():
+    """The kernel settings of every notebook the runner executes (papermill's `config`, read by nbclient and
+    jupyter_client), so that a log of the run holds the run and not the kernels' plumbing:
+
+    - the kernel's channels are Unix sockets of its own in Jupyter's runtime folder (`transport = "ipc"`, a new
+      `ip` prefix per call), not TCP ports: ipykernel 7 no longer warns, for every notebook, "Kernel is running
+      over TCP without encryption", and parallel kernels cannot collide on a port ("ZMQError: Address already in
+      use"). Where Unix sockets cannot be used (Windows, or a runtime folder whose path is too long for a socket
+      name): TCP with CurveZMQ keys provisioned by the manager (`transport_encryption = "auto"`), which also ends
+      the warning;
+    - the kernel process logs only critical errors (`IPKernelApp.log_level`): jupyter_client interrupts a kernel
+      before shutting it down, and now and then ipykernel reports that interrupt as "ERROR | KeyboardInterrupt
+      caught in kernel". A notebook's own errors are not kernel log lines: they reach the executed notebook and
+      `NotebookFailed`."""
+    import uuid
+
+    import zmq
+    from jupyter_core.paths import jupyter_runtime_dir
+    from traitlets.config import Config
+
+    prefix = os.path.join(jupyter_runtime_dir(), f"kernel-{uuid.uuid4()}-ipc")  # sockets: prefix-1 ... prefix-5
+    config = Config({"NotebookClient": {"extra_arguments": ["--IPKernelApp.log_level=CRITICAL"]}})
+    if os.name == "posix" and len(prefix.encode()) < 96:  # a socket's path: at most 107 bytes on Linux, 103 on macOS
+        os.makedirs(os.path.dirname(prefix), mode=0o700, exist_ok=True)
+        config.KernelManager.transport = "ipc"
+        config.KernelManager.ip = prefix
+    elif zmq.has("curve"):
+        config.KernelManager.transport_encryption = "auto"
+    return config
+
+
+def _ansi_free(text: str) -> str:
+    import re
+
+    return re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", text)
+
+
+def failure_message(notebook: Path, output: Path, exc) -> str:
+    """A `PapermillExecutionError` in a few readable lines: the notebook cell (its number and first line of code),
+    the error, the last lines of its traceback, and the executed notebook that holds the rest."""
+    lines = [ln for ln in _ansi_free(exc.source).splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    tb = [ln for ln in _ansi_free("\n".join(exc.traceback or [])).splitlines()
+          if ln.strip() and ln.strip("- ") and "Traceback (most recent call last)" not in ln]
+    where = f"In [{exc.exec_count}]" + (f" ({lines[0].strip()[:80]})" if lines else "")  # as the notebook shows it
+    tail = "".join(f"\n    {ln}" for ln in tb[-7:-1])  # the lines nearest the error (the error: first line)
+    return (f"{notebook.name}: {where} raised {exc.ename}: {exc.evalue}{tail}\n"
+            f"  executed notebook: {output}")
+
+
+def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retries: int = 1,
+            warm: bool = False, env: dict[str, str] | None = None) -> Path:
+    """Run a notebook with papermill (explicit kernel, cwd and timeout, `kernel_config`): in its own kernel, or with
+    `warm` in this worker's warm kernel (`monolib.study.kernels`, which inherits `env`). A failing notebook cell raises
+    `NotebookFailed` naming the cell and the executed notebook (papermill writes it, traceback included). Any other
+    failure (a kernel that did not start, died or timed out) is retried `retries` times, in a fresh kernel; a warm
+    kernel is discarded after any failure, so no notebook inherits a broken one."""
+    import papermill
+
+
+    output.parent.mkdir(parents=True, exist_ok=True)
+    for attempt in range(retries + 1):
+        try:
+            if warm:
+                kernels.execute(str(notebook), str(output), parameters, timeout, str(notebook.parent), env or {},
+                                kernel_config())
+            else:
+                papermill.execute_notebook(str(notebook), str(output), parameters=parameters, kernel_name="python3",
+                                           cwd=str(notebook.parent), execution_timeout=timeout, progress_bar=False,
+                                           log_output=False, config=kernel_config())
+            return output
+        except papermill.PapermillExecutionError as exc:
+            if warm:
+                kernels.discard()
+            raise NotebookFailed(failure_message(notebook, output, exc)) from None
+        except Exception as exc:  # the kernel failed: start-up (ZMQError, timeouts), death, a cell's timeout
+            if warm:
+                kernels.discard()
+            if attempt == retries:
+                raise
+            log.warning("%s: the kernel failed (%s: %s); running it again in a fresh kernel", notebook.name,
+                        type(exc).__name__, exc)
+            time.sleep(2)
+    return output
+
+
+def _cell_notebook_path(study_name: str, cell_name: str) -> Path:
+    """Where the runner writes the executed notebook of a cell (`runs/<study>/notebooks/cells/`)."""
+    return paths.study_dir(study_name) / "notebooks" / "cells" / f"{cell_name.replace('/', '__')}.ipynb"
+
+
+def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int, env: dict[str, str]) -> float:
+    """One cell of the grid as a worker runs it (a local process or a Dask worker): `ablation_cell.ipynb` through
+    papermill into `output`, in a kernel that inherits `env` (`monolib.study.cluster.task_environment`: the client's
+    runs folder and device): the worker's warm kernel (`monolib.study.kernels`) unless ``MONOLIB_KERNELS=cold``.
+    Returns its wall seconds."""
+    t0 = time.perf_counter()
+    if cluster.FINGERPRINT_ENV in env:  # a Dask worker: still the client's code, libraries and study, now?
+        cluster.check_fingerprint(study_file, env[cluster.FINGERPRINT_ENV])
+        env = {k: v for k, v in env.items() if k != cluster.FINGERPRINT_ENV}
+    os.environ.update(env)
+    execute(CELL_NOTEBOOK, Path(output), {"study": study_file, "method": cell.method, "scenario": cell.scenario,
+                                          "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""},
+            timeout, warm=kernels.warm_enabled(), env=env)
+    return time.perf_counter() - t0
+
+
+def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_process: bool = False,
+             scheduler: str | None = None) -> dict:
+    """Run every cell that has no results yet through papermill: in `jobs` local worker processes, or as tasks of
+    the Dask scheduler at `scheduler` (`monolib.study.cluster`; its workers share the runs folder). `in_process`:
+    `monolib.retrieval.cell.run_cell` one cell after the other in this process, no kernel per cell: what `prepare` does for
+    a notebook; the same function computes the same files."""
+
+    def folder(c: CellSpec) -> Path:
+        return paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed)
+
+    cells = grid(study)
+    data_key = dataset.dataset_key(study)  # the upstream stages' keys, once: each cell's key is its inputs' + its own
+    scenario_keys = scenegraphs.scenario_keys(study, data_key) if study.graph_methods() else {}
+    keys = {c.name: cell_key(study, c.method, c.scenario, c.threshold, c.seed,
+                             scenario_keys[c.scenario] if methods.kind(c.method, study) == "graph" else data_key)
+            for c in cells}
+    records = {c.name: claim(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
+    todo = [c for c in cells if records[c.name] is None]
+    for c in cells:
+        if records[c.name] is not None:  # the reported k may have changed: from the rankings, no training
+            refresh_metrics(folder(c), study, records[c.name])
+    copies = same_graphs(study, cells, scenario_keys) if todo else {}
+    run = [c for c in todo if c.name not in copies]
+    log.debug("grid: %d cells, %d done, %d to run, %d to copy", len(cells), len(cells) - len(todo), len(run),
+              len(todo) - len(run))
+    print(f"grid: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run "
+          f"({len(todo) - len(run)} of them have the graphs of a smaller threshold: copied from it)", flush=True)
+    jobs = jobs or study.jobs
+    failed = []
+    seconds: dict[str, float] = {}  # wall seconds of each cell run (a notebook: kernel start included)
+    t0 = time.perf_counter()
+    if run and in_process:
+        for c in tqdm(run, desc="cells", unit="cell", disable=not progress):
+            try:
+                t = time.perf_counter()
+                run_cell(study, c.method, c.scenario, c.threshold, c.seed)
+                seconds[c.name] = time.perf_counter() - t
+            except Exception as exc:
+                failed.append((c.name, exc))
+                log.error("cell %s failed: %s: %s", c.name, type(exc).__name__, exc)
+    elif run:
+        env = cluster.task_environment()
+        if scheduler:  # each task checks, on its worker and before it computes, what decides its numbers
+            import json
+
+            env[cluster.FINGERPRINT_ENV] = json.dumps(cluster.fingerprint(str(study.path)), sort_keys=True)
+        with cluster.Workers(study, jobs, scheduler) as workers:
+            print(f"cells on {workers.describe()}", flush=True)
+            futures = {workers.submit(c.name, run_cell_notebook, study.path, c,
+                                      str(_cell_notebook_path(study.name, c.name)), study.cell_timeout, env): c
+                       for c in run}
+            bar = tqdm(total=len(run), desc="cells", unit="cell", disable=not progress)
+            for fut in as_completed(futures):
+                try:
+                    seconds[futures[fut].name] = fut.result()
+                except Exception as exc:
+                    failed.append((futures[fut].name, exc))
+                    log.error("cell %s failed: %s: %s", futures[fut].name, type(exc).__name__, exc)
+                bar.update(1)
+            bar.close()
+    for c in todo:
+        if c.name in copies:
+            source = copies[c.name]
+            if is_complete(folder(source), keys[source.name]):
+                copy_cell(folder(source), folder(c), c.threshold, source.name, keys[c.name])
+            else:
+                failed.append((c.name, f"its source cell {source.name} did not finish"))
+    if failed:
+        ran, lines = {c.name for c in run}, []
+        for name, exc in failed:
+            if name not in ran:  # a copy whose source cell failed
+                lines.append(f"{name}: {exc}")
+            elif in_process:
+                lines.append(name)
+            else:
+                lines.append(f"{name} (executed notebook: {_cell_notebook_path(study.name, name)})")
+        raise NotebookFailed(f"{len(failed)} of {len(cells)} cells failed (their errors are above):"
+                             + "".join(f"\n  {ln}" for ln in lines) + "\nre-run to retry only these")
+    return {"cells": len(cells), "ran": len(todo), "seconds": time.perf_counter() - t0, "cell_seconds": seconds}
+
+
+def prepare(study: Study | str, scenarios: list[str] | None = None, cells: bool = False,
+            progress: bool = True) -> Study:
+    """Make what a notebook needs exist, each stage skipped when its files exist (`stages`, the same path as
+    `run`): the dataset (rendered when the study is synthetic), the perception models that `scenarios` use
+    (trained, evaluated, every selected frame predicted), the scenarios' scene graphs and, with `cells`, every
+    cell of the grid (run in this process: `run_grid(in_process=True)`). `scenarios`: names of the study's
+    scenarios, default all of them; `rgb` (the scenario of the image-only methods) needs the dataset only.
+    Returns the study. Every notebook calls it first, so that it runs on a fresh clone with its defaults."""
+    if not isinstance(study, Study):
+        study = load_study(study)
+    with locks.study_lock(study.dir, study.data_dir):  # the study's lock: held already inside a run's own cells
+        stages(study, None if cells else scenarios, progress=progress)  # the grid needs every scenario
+        if cells:
+            run_grid(study, progress=progress, in_process=True)
+    return study
+
+
+def stages(study: Study, scenarios: list[str] | None = None, progress: bool = True, figures: bool = False,
+           times: dict | None = None) -> None:
+    """The stages before the cells, in the order data flows, each skipped when its files exist: the dataset, the
+    perception models the scenarios' graphs need, the graphs of `scenarios` (default: every scenario, and `rgb`,
+    the dataset of the image methods). One path for `prepare` (a notebook) and `run` (the study): with `figures`,
+    `run`'s figures of each stage too (the frames mosaic; the perception metrics and Figures 3-4 of every model;
+    graph sizes and fidelity), and the stages are announced as ``[i/5]``. `times`: filled with seconds per
+    stage (``dataset_s``, ``perception_s``, ``graphs_s``)."""
+    def say(line: str) -> None:
+        if figures:
+            print(line, flush=True)
+
+    times = {} if times is None else times
+    names = list(study.scenarios) + [IMAGE_SCENARIO] if scenarios is None else list(scenarios)
+    unknown = [n for n in names if n not in study.scenarios and n != IMAGE_SCENARIO]
+    if unknown:
+        raise StudyError(f"scenario {', '.join(map(repr, unknown))}: not in {study.path} "
+                         f"(scenarios: {', '.join(study.scenarios)}, or {IMAGE_SCENARIO} for an image method)")
+    wanted = [n for n in names if n in study.scenarios] if study.graph_methods() else []
+    keys = scenegraphs.scenario_keys(study) if wanted else {}
+    todo = [n for n in wanted if not scenegraphs.graphs_path(study, n, keys[n]).exists()]
+    sources = {s for n in (wanted if figures else todo) for s in (study.scenarios[n].depth, study.scenarios[n].semantic)}
+    models = [] if study.graphs_root else [m for m in study.model_names() if m in sources]
+    if models:
+        perception.check_weights(study)  # before any work, the rendering included
+
+    t = time.perf_counter()
+    ds = None
+    if study.graphs_root:
+        say(f"[1/5] dataset: published graphs in {study.graphs_root}")
+    elif todo or models or IMAGE_SCENARIO in names or figures:
+        say(f"[1/5] dataset: {study.dataset_root}")
+        ds = dataset.ensure_dataset(study, progress=progress)
+        if figures and not study.extends:
+            viz.save_dataset_mosaic(study, paths.figures_dir(study.name) / "frames.png", ds)
+    times["dataset_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    if models:
+        say("[2/5] perception")
+        # every model for the run's figures (its table lists them all), else those of the graphs to build
+        perception.run(study, progress=progress, only=None if figures else models, dataset=ds)
+        if figures and not study.extends:  # the paper's Figures 3 and 4 and the training curves, into figures/
+            perception.draw_figures(study, dataset=ds)
+    else:
+        say("[2/5] perception: not needed (ground-truth scenarios only)")
+    times["perception_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    if wanted:
+        say(f"[3/5] graphs: {len(wanted)} scenarios")
+        if todo:
+            scenegraphs.build_all(study, todo, progress=progress)
+        if figures:
+            graph_sizes.write_graph_sizes(study)  # graph_sizes.md / .csv: nodes and edges per scenario and threshold
+            fidelity.write(study)  # fidelity.md / .csv: the ground-truth graphs beside real Hypersim's statistics
+    times["graphs_s"] = time.perf_counter() - t
+
+
+def write_run_record(study: Study, times: dict, path: Path) -> None:
+    """How long each stage of this run took, and on what machine (the README quotes it)."""
+    import platform
+
+    import torch
+
+
+    record = {"study": study.name, "stage_seconds": {k[:-2]: round(v, 1) for k, v in times.items()},
+              "total_seconds": round(sum(times.values()), 1), "cpus": os.cpu_count(),
+              "machine": f"{platform.machine()} {platform.processor()}".strip(), "python": platform.python_version(),
+              "torch": torch.__version__, "torch_threads": study.threads, "jobs": study.jobs,
+              "date": time.strftime("%Y-%m-%d")}
+    write_json(path, record)
+
+
+def run(study: Study, jobs: int | None = None, progress: bool = True, scheduler: str | None = None) -> dict:
+    """All stages of a study, each skipped when its results exist. Returns timings per stage. `scheduler`: the
+    address (or scheduler file) of a Dask scheduler whose workers run the cells (`monolib.study.cluster`). Holds the
+    study's lock (`monolib.locks`): a second run of the same study waits for this one."""
+    with locks.study_lock(study.dir, study.data_dir):
+        return _run(study, jobs, progress, scheduler)
+
+
+def _run(study: Study, jobs: int | None, progress: bool, scheduler: str | None) -> dict:
+    check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})
+    check_notebook_parameters(REPORT_NOTEBOOK, {"study"})
+    if scheduler:
+        cluster.check(scheduler, study)
+    times: dict[str, float] = {}
+    stages(study, progress=progress, figures=True, times=times)  # what `prepare` runs for a notebook, and figures
+
+    t = time.perf_counter()
+    print("[4/5] cells", flush=True)
+    grid_run = run_grid(study, jobs, progress, scheduler=scheduler)
+    times["cells_s"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    print("[5/5] report", flush=True)
+    execute(REPORT_NOTEBOOK, study.dir / "notebooks" / "report.ipynb", {"study": study.path}, study.cell_timeout)
+    times["report_s"] = time.perf_counter() - t
+    out = paths.figures_dir(study.name)
+    if grid_run["ran"] or not (out / "timings.json").is_file():  # a cached re-run keeps the record of the real run
+        write_run_record(study, times, out / "timings.json")
+    if study.name in paths.COMMITTED_FIGURES:
+        if readme.update():
+            print("README.md: result blocks updated from figures/", flush=True)
+    print(f"done: tables and figures in {out} (table1_recall.md, table2_precision.md, results.csv); "
+          f"executed notebooks in {study.dir / 'notebooks'}", flush=True)
+    return times

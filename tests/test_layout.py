@@ -1,0 +1,78 @@
+"""The house by stage: every import of monolib points down the pipeline (shared tools < data < perception < graphs
+< retrieval < report < study < the entry points), at module level or inside a function, and a module imports
+another of monolib inside a function only to defer a heavy library, saying so on that line."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "monolib"
+# the wings in the order data flows; a module may import its own wing (no cycle: tools/import_cycles) or a lower one
+ORDER = ["shared", "data", "perception", "graphs", "retrieval", "report", "study", "entry"]
+ENTRY = {"localize", "bench", "cli"}
+DEFERRED = "# deferred:"  # the comment a function-level import of monolib carries: the heavy library it defers
+
+
+def wing(module: str) -> str:
+    parts = module.split(".")[1:]
+    if len(parts) > 1 and parts[0] in ORDER:
+        return parts[0]
+    return "entry" if parts and parts[0] in ENTRY else "shared"
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for f in sorted(PACKAGE.rglob("*.py")):
+        rel = f.relative_to(PACKAGE.parent).with_suffix("")
+        name = ".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)
+        out[name] = f
+    return out
+
+
+def imports(path: Path):
+    """(line, imported module, at module level, the line's text) for each import of monolib in `path`."""
+    text = path.read_text()
+    lines = text.splitlines()
+    tree = ast.parse(text, str(path))
+    top = {id(n) for n in tree.body}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "monolib":
+            targets = [node.module] if node.module != "monolib" else [f"monolib.{a.name}" for a in node.names]
+            if node.module != "monolib":
+                targets = [f"{node.module}.{a.name}" if (PACKAGE.parent / f"{node.module}.{a.name}".replace(".", "/")).with_suffix(".py").exists()
+                           or (PACKAGE.parent / f"{node.module}.{a.name}".replace(".", "/")).is_dir() else node.module
+                           for a in node.names]
+        elif isinstance(node, ast.Import):
+            targets = [a.name for a in node.names if a.name.split(".")[0] == "monolib"]
+        else:
+            continue
+        for t in targets:
+            yield node.lineno, t, id(node) in top, lines[node.lineno - 1]
+
+
+def test_every_import_points_down_the_pipeline():
+    up = []
+    for name, path in modules().items():
+        for line, target, _, _ in imports(path):
+            if ORDER.index(wing(target)) > ORDER.index(wing(name)):
+                up.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {name} ({wing(name)}) imports {target} "
+                          f"({wing(target)})")
+    assert not up, "imports up the pipeline:\n" + "\n".join(up)
+
+
+def test_function_level_imports_of_monolib_only_defer_a_heavy_library():
+    hidden = []
+    for name, path in modules().items():
+        for line, target, at_top, text in imports(path):
+            if not at_top and DEFERRED not in text:
+                hidden.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {text.strip()}")
+    assert not hidden, ("imports of monolib inside a function without '# deferred: <library>' (move them to the "
+                        "top of the module):\n" + "\n".join(hidden))
+
+
+@pytest.mark.parametrize("module,expected", [("monolib.data.synth", "data"), ("monolib.params", "shared"),
+                                             ("monolib.cli", "entry"), ("monolib.study.runner", "study")])
+def test_wing(module, expected):
+    assert wing(module) == expected
