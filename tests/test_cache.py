@@ -17,6 +17,7 @@ from monolib.data import selection, stage as dataset
 from monolib.graphs import stage as scenegraphs
 from monolib.params import load_study
 from monolib.perception import stage as perception
+from monolib.report import graph_sizes
 from monolib.retrieval import cell
 
 
@@ -85,10 +86,10 @@ def test_a_missing_file_of_a_download_is_an_empty_graph_counted_in_graph_sizes(s
     f.files["semantic"].unlink()
     data = scenegraphs.load_file(s, "s1")
     assert len(data["missing"]) == 1 and f.key in data["missing"][0]
-    table = scenegraphs.graph_sizes(s)
+    table = graph_sizes.graph_sizes(s)
     assert set(table[table.scenario == "s1"].missing_frames) == {1}
     assert "missing or unreadable file of the dataset** (each is an empty graph in every threshold): s1 1" in \
-        scenegraphs.graph_sizes_markdown(table)
+        graph_sizes.graph_sizes_markdown(table)
 
 
 # ---- corrupt cached files are recomputed -------------------------------------------------------------------
@@ -179,7 +180,7 @@ def test_a_file_without_read_permission_is_an_error_and_is_kept(tmp_path, monkey
 # ---- caches know their code ------------------------------------------------------------------------------------
 
 def test_source_version_ignores_comments_and_docstrings_but_not_code():
-    src = (paths.PACKAGE / "graph.py").read_text()
+    src = (paths.PACKAGE / "graphs" / "build.py").read_text()
     v = versions.source_version(src)
     assert versions.source_version('"""Another docstring."""\n' + src.split('"""', 2)[2]) == v
     assert versions.source_version(src.replace("\n\n", "\n\n# a comment\n", 1)) == v
@@ -196,7 +197,7 @@ def test_a_changed_graph_builder_gives_new_graph_and_cell_keys_only(study, monke
               "cell": cell.cell_key(study, "gcn", "s1", 1.0, 0), "data": dataset.dataset_key(study)}
     real = versions.module_version.__wrapped__
     monkeypatch.setattr(versions, "module_version",
-                        lambda m: real(m) + ("-changed" if m == "graph" else ""))
+                        lambda m: real(m) + ("-changed" if m == "graphs.build" else ""))
     versions.code_version.cache_clear()
     try:
         after = {"model": perception.model_key(study, "deeplab"), "graphs": scenegraphs.scenario_key(study, "s1"),

@@ -257,9 +257,9 @@ def test_a_release_of_three_volumes_gives_the_paper_protocol_its_16_settings(tmp
     assert len(list(test.iterdir())) == 50
     write_folder(tmp_path / "graphs" / "train", [f"0{i:02d}001" for i in range(1, 6)], 6, rng)
     from monolib import paths
+    from monolib.data.protocols import ProtocolDataError, protocol_settings
     from monolib.report import tables
     from monolib.retrieval import cell
-    from monolib.data.protocols import ProtocolDataError, protocol_settings
 
     study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
     study.update(name="published_release", graphs_root=str(tmp_path / "graphs"), seeds=[0], thresholds=[1])

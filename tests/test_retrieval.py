@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from monolib.params import Protocol
 from monolib.data.protocols import ProtocolDataError, family, protocol_settings
+from monolib.params import Protocol
 from monolib.retrieval.evaluate import draw_protocol, evaluate, evaluate_protocols, protocol_seed
 from monolib.retrieval.metrics import metrics_from_hits
 

@@ -16,6 +16,7 @@ import yaml
 from monolib import locks, paths
 from monolib.data import synth
 from monolib.params import load_study
+from monolib.report import graph_sizes
 from monolib.retrieval import cell
 
 pytestmark = pytest.mark.slow
@@ -167,7 +168,7 @@ def test_the_graph_stage_counts_the_labelled_pixels_it_drops_for_their_depth(smo
     valid_gt = np.isfinite(frame.depth) & (frame.depth > 0)
     expected = int(((sem >= 1) & ~valid_gt).sum() + ((sem[:40, :50] >= 1) & valid_gt[:40, :50]).sum())
     assert dropped == expected and dropped > 0
-    sizes = scenegraphs.graph_sizes(s)
+    sizes = graph_sizes.graph_sizes(s)
     assert {"dropped_pixels", "frames_with_dropped_pixels"} <= set(sizes.columns)
     assert (sizes["dropped_pixels"] >= 0).all()
 

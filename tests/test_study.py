@@ -16,6 +16,7 @@ import yaml
 
 from monolib import paths
 from monolib.params import load_study
+from monolib.report import graph_sizes
 from monolib.report.results import check_protocols, recompute_metrics, split_protocols
 
 pytestmark = pytest.mark.slow
@@ -317,7 +318,7 @@ def test_graph_sizes_table_of_the_smoke_study(smoke_study):
     s = load_study("smoke")
     fig = paths.figures_dir("smoke")
     sizes = pd.read_csv(fig / "graph_sizes.csv", dtype={"threshold": str, "same_graphs_as": str}, keep_default_na=False)
-    assert list(sizes.columns) == scenegraphs.SIZE_COLUMNS
+    assert list(sizes.columns) == graph_sizes.SIZE_COLUMNS
     assert len(sizes) == len(s.scenarios) * len(s.thresholds)
     assert list(sizes[sizes.scenario == "s1"]["threshold"]) == [paths.threshold_tag(t) for t in s.thresholds]
     copies = same_graphs(s, grid(s))

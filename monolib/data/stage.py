@@ -6,11 +6,11 @@ import dataclasses
 from pathlib import Path
 from typing import Optional
 
+from monolib import versions
 from monolib.data import synth
 from monolib.data.hypersim import HypersimDataset
 from monolib.io import sha256
 from monolib.params import Study, key_of
-from monolib.versions import code_version, library_versions
 
 
 def ensure_dataset(study: Study, progress: bool = True) -> HypersimDataset:
@@ -27,8 +27,8 @@ def dataset_key(study: Study) -> str:
     for where in ("root", "metadata_dir", "workers"):  # where the files are and how many processes read them
         spec.pop(where)
     if study.dataset.source == "synth":
-        return key_of({"dataset": spec, "seed": study.seed, "code": code_version("dataset"),
-                       "libraries": library_versions("dataset")})
+        return key_of({"dataset": spec, "seed": study.seed, "code": versions.code_version("dataset"),
+                       "libraries": versions.library_versions("dataset")})
     return key_of({"dataset": spec, "seed": study.seed, "download": download_fingerprint(study)})
 
 

@@ -64,20 +64,33 @@ def grouped_median_u8(labels: np.ndarray, channels: np.ndarray, uniq: np.ndarray
     return 0.5 * (low + high)
 
 
-def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Nodes of a frame: (x (L, 4) float32 [id, R, G, B in 0..1], pos (L, 3) float32 metres, camera frame).
-
-    Pixels with NaN / non-positive depth or label -1 are left out; no valid pixel gives L = 0. Positions are
-    per-axis medians by one sort (`grouped_median`), uint8 colours exact medians from histograms.
-    """
+def frame_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray,
+                camera: Camera) -> tuple[np.ndarray, np.ndarray, int]:
+    """`scene_nodes` and the labelled pixels it left out for their depth (NaN, inf or <= 0), from one mask."""
     depth = np.asarray(depth, dtype=np.float32)
     semantic = np.asarray(semantic)
     if depth.shape != semantic.shape:
         raise ValueError(f"depth {depth.shape} and semantic {semantic.shape} differ in shape")
     if rgb is not None and rgb.shape[:2] != depth.shape:
         raise ValueError(f"rgb {rgb.shape} and depth {depth.shape} differ in size")
+    labelled = (semantic >= 1).reshape(-1)
     with np.errstate(invalid="ignore"):
-        valid = ((depth > 0) & (semantic >= 1)).reshape(-1)  # NaN > 0 is False
+        valid = labelled & (np.isfinite(depth) & (depth > 0)).reshape(-1)
+    x, pos = _nodes(rgb, depth, semantic, camera, valid)
+    return x, pos, int(np.count_nonzero(labelled)) - int(np.count_nonzero(valid))
+
+
+def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes of a frame: (x (L, 4) float32 [id, R, G, B in 0..1], pos (L, 3) float32 metres, camera frame).
+
+    Pixels with NaN, infinite or non-positive depth or label -1 are left out; no valid pixel gives L = 0.
+    Positions are per-axis medians by one sort (`grouped_median`), uint8 colours exact medians from histograms.
+    """
+    return frame_nodes(rgb, depth, semantic, camera)[:2]
+
+
+def _nodes(rgb, depth: np.ndarray, semantic: np.ndarray, camera: Camera, valid: np.ndarray):
+    """The nodes of the pixels of `valid` (flat bool mask): `scene_nodes`."""
     rays = camera.rays(*depth.shape).reshape(-1, 3)
     labels, d = semantic.reshape(-1), depth.reshape(-1)
     colours = None if rgb is None else rgb.reshape(-1, 3)

@@ -16,14 +16,14 @@ import numpy as np
 import torch
 from torch_geometric.data import Data
 
+from monolib import versions
 from monolib.data import selection, stage as dataset
 from monolib.graphs import published
-from monolib.graphs.build import NODE_FEATURES, complete_graph, pair_mask, scene_nodes
+from monolib.graphs.build import NODE_FEATURES, complete_graph, frame_nodes, pair_mask
 from monolib.io import DataFileError, load_cached, save_torch
 from monolib.params import Study, key_of, resolve_path
 from monolib.perception import stage as perception
 from monolib.progress import tqdm
-from monolib.versions import code_version, library_versions
 
 log = logging.getLogger(__name__)
 SPLITS = ("train", "val", "test")
@@ -55,7 +55,7 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
                    "frames": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
                               "frames": pr.frames},
                    "val": study.gcn.val_settings, "sources": sources, "depth_scale": sc.depth_scale,
-                   "code": code_version("graphs"), "libraries": library_versions("graphs")})
+                   "code": versions.code_version("graphs"), "libraries": versions.library_versions("graphs")})
 
 
 def published_fingerprint(study: Study) -> Optional[str]:
@@ -97,10 +97,7 @@ def _frame_nodes(args) -> list[tuple]:
         try:
             depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
             semantic = source("semantic", sc.semantic)
-            x, pos = scene_nodes(f.rgb, depth, semantic, f.camera)
-            with np.errstate(invalid="ignore"):  # labelled pixels left out for their depth (NaN, inf, <= 0)
-                dropped = int(np.count_nonzero((np.asarray(semantic) >= 1) & ~(np.isfinite(depth) & (depth > 0))))
-            out.append((x, pos, dropped))
+            out.append(frame_nodes(f.rgb, depth, semantic, f.camera))  # (x, pos, labelled pixels left out)
         except perception.PredictionsMissing:  # a model's prediction: never an empty graph
             raise
         except (DataFileError, FileNotFoundError) as exc:  # a missing file of the download: an empty graph, counted

@@ -24,18 +24,16 @@ from typing import Callable, Optional
 import numpy as np
 import pandas as pd
 
-from monolib import io, paths
+from monolib import device as devices, io, paths, versions
 from monolib.data import labels
 from monolib.data.labels import NUM_CLASSES
 from monolib.data.selection import select_frames
 from monolib.data.stage import dataset_key as data_key, ensure_dataset, open_dataset
-from monolib.device import device
 from monolib.params import Study, StudyError, key_of, resolve_path
 from monolib.perception import depth as dep, manifests, segmentation as seg, weights
 from monolib.perception.depth import depth_errors, summarise
 from monolib.perception.segmentation import confusion, scores
 from monolib.progress import tqdm
-from monolib.versions import code_version, library_versions
 
 log = logging.getLogger(__name__)
 
@@ -76,10 +74,10 @@ def model_key(study: Study, name: str, dataset_key: Optional[str] = None) -> str
         fields.pop(label, None)
     return key_of({"task": task, "spec": fields,
                    "dataset": dataset_key if dataset_key is not None else data_key(study),
-                   "seed": study.seed, "device": device().type, "deterministic": study.deterministic,
-                   "amp": study.perception.amp and device().type == "cuda",
+                   "seed": study.seed, "device": devices.device().type, "deterministic": study.deterministic,
+                   "amp": study.perception.amp and devices.device().type == "cuda",
                    "threads": study.perception.threads, "predict_batch": study.perception.predict_batch,
-                   "code": code_version("perception"), "libraries": library_versions("perception"),
+                   "code": versions.code_version("perception"), "libraries": versions.library_versions("perception"),
                    "weights": shipped, "checkpoint": checkpoint})
 
 

@@ -23,16 +23,14 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib import methods, paths
+from monolib import device as devices, methods, paths, versions
 from monolib.data import selection, stage as dataset
-from monolib.device import device
 from monolib.graphs import build as graph, stage as scenegraphs
 from monolib.io import (
     atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
 )
 from monolib.params import Study, StudyError, key_of
 from monolib.retrieval import baselines, evaluate, gcn, metrics
-from monolib.versions import code_version, library_versions
 
 log = logging.getLogger(__name__)
 IMAGE_SCENARIO = "rgb"  # image methods use neither the scenario's sources nor the threshold
@@ -66,9 +64,9 @@ def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: i
                    "protocol": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
                                 "frames": pr.frames, "queries": pr.queries, "positives": pr.positives,
                                 "ranked": evaluate.ranking_depth(pr)},
-                   "val": study.gcn.val_settings, "threads": study.threads, "device": device().type,
-                   "deterministic": study.deterministic, "code": code_version("cells"),
-                   "libraries": library_versions("cells")})
+                   "val": study.gcn.val_settings, "threads": study.threads, "device": devices.device().type,
+                   "deterministic": study.deterministic, "code": versions.code_version("cells"),
+                   "libraries": versions.library_versions("cells")})
 
 
 def refresh_metrics(folder: Path, study: Study, record: Optional[dict] = None) -> dict:

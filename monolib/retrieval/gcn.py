@@ -59,7 +59,6 @@ class GraphPool:
     def __init__(self, graphs: list[Data]):
         if not graphs:
             raise ValueError("a pool of graphs needs at least one graph")
-        self.size = len(graphs)
         self.num_nodes = torch.tensor([g.num_nodes for g in graphs], dtype=torch.long)
         self.num_edges = torch.tensor([g.edge_index.shape[1] for g in graphs], dtype=torch.long)
         self.x = torch.cat([g.x for g in graphs])

@@ -133,7 +133,7 @@ def kernel(cwd: str, env: dict[str, str], config) -> Kernel:
             util.Finalize(k, Kernel.shutdown, args=(k,), exitpriority=10)  # a pool worker's exit skips atexit
         except Exception:  # noqa: BLE001 - not in a multiprocessing worker
             pass
-    k.run(f"__import__('monolib.study.kernels').kernels.reset_kernel({k.cells > 0!r})")
+    k.run(f"__import__('monolib.study.kernels').study.kernels.reset_kernel({k.cells > 0!r})")
     k.cells += 1
     return k
 
