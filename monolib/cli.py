@@ -69,14 +69,14 @@ def main(argv: list[str] | None = None) -> int:
         logging.getLogger(noisy).setLevel(logging.WARNING)
     try:
         if args.command == "study":
-            from monolib.study import runner as study_mod  # deferred: torch
+            from monolib.study import runner  # deferred: torch
 
             t0 = time.perf_counter()
             if args.cold_kernels:
                 import os
 
                 os.environ["MONOLIB_KERNELS"] = "cold"
-            times = study_mod.run(load_study(args.study), jobs=args.jobs, scheduler=args.scheduler)
+            times = runner.run(load_study(args.study), jobs=args.jobs, scheduler=args.scheduler)
             print("stage seconds: " + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in times.items())
                   + f"; total {time.perf_counter() - t0:.0f}")
         elif args.command == "synth":

@@ -19,7 +19,9 @@ from monolib import paths
 
 # The modules whose code decides each stage's output (the stage's own module and the ones it computes with).
 STAGE_MODULES = {
-    "dataset": ["data.stage", "data.synth", "data.hypersim", "data.labels"],
+    "dataset": ["data.stage", "data.synth", "data.synth.materials", "data.synth.furniture", "data.synth.rooms",
+                "data.synth.mesh", "data.synth.render", "data.synth.cameras", "data.synth.setting",
+                "data.synth.dataset", "data.hypersim", "data.labels"],
     "perception": ["perception.stage", "perception.segmentation", "perception.depth", "perception.imagenet",
                    "perception.zoo", "perception.manifests", "perception.weights", "data.stage", "data.selection",
                    "data.protocols", "data.hypersim", "data.labels"],
@@ -85,8 +87,10 @@ def source_version(source: str, filename: str = "<source>") -> str:
 
 @functools.lru_cache(maxsize=None)
 def module_version(module: str) -> str:
-    """`source_version` of one module (``monolib/<module>.py``), its `PRESENTATION_FUNCTIONS` left out."""
-    path = paths.PACKAGE.joinpath(*module.split(".")).with_suffix(".py")
+    """`source_version` of one module (``monolib/<module>.py``, or a package's ``monolib/<module>/__init__.py``),
+    its `PRESENTATION_FUNCTIONS` left out."""
+    path = paths.PACKAGE.joinpath(*module.split("."))
+    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
     text = path.read_text()
     drop = PRESENTATION_FUNCTIONS.get(module)
     if drop:

@@ -215,8 +215,10 @@ def test_keys_hold_the_device_and_the_deterministic_mode(study):
 
 
 def _module_file(module: str):
-    """``monolib/<a>/<b>.py`` of a module named ``a.b`` relative to the package (None: a package or nothing)."""
-    f = paths.PACKAGE.joinpath(*module.split(".")).with_suffix(".py")
+    """``monolib/<a>/<b>.py`` of a module named ``a.b`` relative to the package, ``monolib/<a>/<b>/__init__.py`` of a
+    package (None: nothing)."""
+    f = paths.PACKAGE.joinpath(*module.split("."))
+    f = f / "__init__.py" if f.is_dir() else f.with_suffix(".py")
     return f if f.is_file() else None
 
 

@@ -80,13 +80,13 @@ def test_lines_unless_a_terminal_or_told_otherwise(monkeypatch, capsys):
 
 def test_a_failed_notebook_is_one_error_line_with_its_cell_and_executed_notebook(monkeypatch, capsys):
     from monolib import cli
-    from monolib.study import runner as study
+    from monolib.study import runner
 
     def fail(*args, **kwargs):
-        raise study.NotebookFailed("ablation_cell.ipynb: In [3] (x = 1 / 0) raised ZeroDivisionError: division by zero"
+        raise runner.NotebookFailed("ablation_cell.ipynb: In [3] (x = 1 / 0) raised ZeroDivisionError: division by zero"
                                    "\n  executed notebook: /somewhere/cell.ipynb")
 
-    monkeypatch.setattr(study, "run", fail)
+    monkeypatch.setattr(runner, "run", fail)
     assert cli.main(["study", "smoke"]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: ablation_cell.ipynb: In [3] (x = 1 / 0) raised ZeroDivisionError")

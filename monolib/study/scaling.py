@@ -36,7 +36,7 @@ from monolib.graphs.fidelity import read_reference
 from monolib.io import read_json, write_json, write_text
 from monolib.params import load_study
 from monolib.retrieval import gcn
-from monolib.study import runner as study_mod
+from monolib.study import runner
 
 WORKERS = (1, 8, 64)
 KERNELS = ("cold", "warm")  # monolib.study.kernels: a kernel per cell, or one warm kernel per worker
@@ -57,11 +57,11 @@ def _one_run(base: str, engine: str, jobs: int, scheduler: str | None) -> dict:
     for sub in ("cells", "notebooks"):
         shutil.rmtree(s.dir / sub, ignore_errors=True)
     t0 = time.perf_counter()
-    grid = study_mod.run_grid(s, jobs=jobs, progress=False, scheduler=scheduler)
+    grid = runner.run_grid(s, jobs=jobs, progress=False, scheduler=scheduler)
     seconds = time.perf_counter() - t0
 
     records = {c.name: read_json(paths.cell_dir(s.name, c.method, c.scenario, c.threshold, c.seed) / "cell.json")
-               for c in study_mod.grid(s) if c.name in grid["cell_seconds"]}
+               for c in runner.grid(s) if c.name in grid["cell_seconds"]}
     per_cell = [{"cell": name, "wall_s": round(wall, 2), "compute_s": round(sum(records[name]["timings"].values()), 2),
                  "train_s": round(records[name]["timings"].get("train_s", 0.0), 2),
                  "epochs_run": records[name].get("epochs_run")} for name, wall in sorted(grid["cell_seconds"].items())]
@@ -74,7 +74,7 @@ def measure(base: str = "smoke", dask_workers: tuple[int, ...] = (1, 2)) -> dict
     from distributed import LocalCluster
 
 
-    s = study_mod.prepare(base, progress=False)  # dataset, perception, graphs: cached, not timed
+    s = runner.prepare(base, progress=False)  # dataset, perception, graphs: cached, not timed
     out = {"study": base, "jobs": s.jobs, "threads_per_cell": s.threads, "engines": {}}
     saved = os.environ.get("MONOLIB_KERNELS")
     try:
@@ -131,7 +131,7 @@ def project(measured: dict, paper: str = "paper", variants_from: str = "ablation
     with_variants = dataclasses.replace(study, variants=extra)
     counts = {}
     for label, s in (("paper", study), ("paper + encoder variants", with_variants)):
-        counts[label] = sum(methods.kind(c.method, s) == "graph" for c in study_mod.grid(s))
+        counts[label] = sum(methods.kind(c.method, s) == "graph" for c in runner.grid(s))
     hours = {label: {str(w): round(math.ceil(n / w) * cell_s / 3600, 2) for w in WORKERS} for label, n in counts.items()}
     return {"train_s_per_graph_epoch": round(rate, 6), "overhead_s_per_cell": round(overhead, 1),
             "overhead_s_per_cell_by_kernels": overheads,

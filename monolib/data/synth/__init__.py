@@ -1,0 +1,52 @@
+"""The procedural mini-Hypersim: furnished rooms, ray cast with embree, written in Hypersim's exact layout.
+
+Words (design.md): a *setting* is one room configuration (folder ``ai_VVV_NNN``), a *scene* one camera trajectory
+(``cam_XX``), a *frame* one image of it. A *family* is one volume ``ai_9FF``: its settings share the room type, the
+furniture catalogue (object types and their dimensions), the materials, doors and windows, and differ in layout,
+lighting and viewpoints -- the paper's "two neighbouring offices". Volumes start at 900 so a synthetic setting can
+never be confused with a real Hypersim scene.
+
+What makes it look like Hypersim where place recognition is decided (../shared/docs/real-hypersim-statistics.md;
+`monolib.graphs.fidelity` measures it for every study): each family has its own paints, woods, tiles and fabrics drawn from
+a wide continuous space, so walls and floors of two places differ more than one wall seen twice; surfaces carry
+clutter (vases, bottles, bowls, books, table lamps), floors carry plants, some families have skirting boards and
+pendant lamps; the cameras of a setting dwell on one part of the room (`make_trajectories`) with one exposure per
+scene, and some of them look up enough to show the ceiling. The test split holds one setting per family (the
+`paper` protocol) and, for the first `test_siblings` families, a sibling setting (the `siblings` protocol).
+
+Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to
+the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim
+(../shared/docs/hypersim-format.md sections 1, 1a, 1b, 2, 3, 6, 7).
+
+The modules, in the order they build on each other (each imports only those above it):
+
+- `materials`: the materials of a family (`_family_materials`) and their procedural albedo (`_albedo`);
+- `furniture`: mesh parts, objects and items, the furniture builders and their `CATALOGUE`;
+- `rooms`: room types, families (`make_family`) and the layout of one setting (`make_layout`);
+- `mesh`: the triangle mesh of a setting with its classes, instances and materials (`build_mesh`);
+- `render`: ray casting and shading (`Renderer`, `render_frame`);
+- `cameras`: camera models, trajectories (`make_trajectories`), exposures and `refine_views`;
+- `setting`: one setting built, rendered and written in Hypersim's layout (`render_setting`);
+- `dataset`: the study's `plan`, setting keys, `render_dataset` (resumable, ``.tmp_*`` render folders, settings of
+  another key set aside in ``.aside/``), the dataset-level metadata files and `benchmark`.
+
+Public API: `render_dataset(study, out_dir)` and `benchmark()`; the names below are re-exported as well (the tests
+use `plan`, `make_family`, `make_layout`, `render_setting`, `_setting_key`, ...).
+"""
+from __future__ import annotations
+
+from monolib.data.synth.cameras import FOV_X, look_rotation, make_trajectories, refine_views, scene_exposures
+from monolib.data.synth.dataset import (CAMERA_COLUMNS, FORMAT_VERSION, SPLIT_COLUMNS, TRAJECTORY_COLUMNS, VOLUME0,
+                                        _setting_key, benchmark, plan, render_dataset)
+from monolib.data.synth.furniture import CATALOGUE, Item, Obj
+from monolib.data.synth.materials import Material
+from monolib.data.synth.mesh import SceneMesh, build_mesh
+from monolib.data.synth.render import FrameOut, Renderer, render_frame
+from monolib.data.synth.rooms import ROOM_TYPES, ROOMS, Family, Layout, make_family, make_layout
+from monolib.data.synth.setting import build_setting, render_setting
+
+__all__ = ["CAMERA_COLUMNS", "CATALOGUE", "FORMAT_VERSION", "FOV_X", "Family", "FrameOut", "Item", "Layout",
+           "Material", "Obj", "ROOMS", "ROOM_TYPES", "Renderer", "SPLIT_COLUMNS", "SceneMesh", "TRAJECTORY_COLUMNS",
+           "VOLUME0", "_setting_key", "benchmark", "build_mesh", "build_setting", "look_rotation", "make_family",
+           "make_layout", "make_trajectories", "plan", "refine_views", "render_dataset", "render_frame",
+           "render_setting", "scene_exposures"]
