@@ -210,7 +210,6 @@ def perception_fps(study_name: str = "quick", sizes=((256, 192), (1024, 768)), f
     import dataclasses
     import tempfile
 
-
     study = load_study(study_name, check_files=False)
     spec = study.perception
     dev = device()

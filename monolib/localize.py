@@ -90,7 +90,6 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     """Write the database of the study's test frames (their embeddings and settings) into `out`."""
     out = Path(out)
     c = pick_cell(study, method)
-    sc = study.scenarios[c["scenario"]]
     spec = study.gcn_spec(c["method"])
     threshold = float(c["threshold"])  # "inf" reads as inf
     model = gcn.GraphEncoder(spec)

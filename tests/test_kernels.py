@@ -15,7 +15,6 @@ import nbformat
 import pytest
 
 from monolib import paths
-from monolib.params import load_study
 from monolib.study import kernels
 
 pytestmark = pytest.mark.slow

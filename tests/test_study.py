@@ -310,8 +310,6 @@ def test_graph_sizes_table_of_the_smoke_study(smoke_study):
     """graph_sizes.csv: every scenario x threshold of the grid; nodes do not depend on the threshold, edges grow
     with it (0 at 0, every pair at inf), the means are those of the cached graphs, and `same_graphs_as` is the
     runner's rule (`study.same_graphs`)."""
-    import torch
-
     from monolib.graphs import stage as scenegraphs
     from monolib.study.runner import grid, same_graphs
 

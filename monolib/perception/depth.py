@@ -159,7 +159,6 @@ class EfficientEncoder(nn.Module):
         super().__init__()
         import timm
 
-
         self.renormalise = imagenet.Renormalise()
         self.model = timm.create_model(imagenet.timm_name(backbone), pretrained=False, features_only=True,
                                        out_indices=(1, 2, 3, 4))
@@ -206,7 +205,6 @@ def build_model(spec) -> LeReSDepthModel:
         weights = "imagenet"  # the ImageNet file of the encoder's package (monolib.perception.imagenet)
     elif spec.pretrained:
         import torchvision.models as tvm
-
 
         enum_name = {"resnet18": "ResNet18_Weights", "resnet34": "ResNet34_Weights", "resnet50": "ResNet50_Weights",
                      "resnet101": "ResNet101_Weights", "resnext50_32x4d": "ResNeXt50_32X4D_Weights",

@@ -238,7 +238,6 @@ class EfficientDeepLabV3(nn.Module):
         super().__init__()
         import segmentation_models_pytorch as smp
 
-
         self.renormalise = imagenet.Renormalise()
         self.net = smp.DeepLabV3(encoder_name=f"tu-{imagenet.timm_name(backbone)}", encoder_weights=None,
                                  classes=NUM_CLASSES, encoder_output_stride=OUTPUT_STRIDE)

@@ -320,7 +320,6 @@ def predict_frames(model, task: str, frames, spec, write: Callable, progress: bo
     the seconds of inference (reading not counted). `task`: 'segmentation' or 'depth'."""
     import torch
 
-
     predict = seg.predict if task == "segmentation" else dep.predict
     dev = next(model.parameters()).device
     seconds, done = 0.0, 0
@@ -556,7 +555,6 @@ def plot_semantic_examples(study: Study, n: int = 3, save: bool = True, dataset=
     the NYU40 classes present in the shown frames (ground truth or prediction; black: unlabelled)."""
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
-
 
     frames = _test_frames(study, n, dataset)
     name = study.perception.segmentation.name

@@ -22,7 +22,6 @@ def load(spec, task: str, weights: str | Path, study_path: Optional[str] = None,
     file's sha256 against its manifest (the one beside it, or `manifest`) and its architecture against the spec."""
     import torch
 
-
     path = resolve_path(str(weights), study_path)
     where = f"perception model {spec.name!r} weights"
     if manifest is None:

@@ -22,17 +22,18 @@ import dataclasses
 import platform
 import time
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 from monolib import io, paths
 from monolib.data import selection, stage as dataset
 from monolib.device import device
-from monolib.params import Study, StudyError, resolve_path
+from monolib.params import Study
 from monolib.perception import depth as dep, imagenet, segmentation as seg, stage as perception
-from monolib.perception.manifests import (  # noqa: F401
-    STAGING, WeightsError, architecture, check_architecture, manifest_path, read_manifest
-)
+from monolib.perception.manifests import STAGING, WeightsError, architecture, read_manifest  # noqa: F401 (zoo.*)
 from monolib.perception.weights import load  # noqa: F401  (re-exported: zoo.load)
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 ZOO_DIR = paths.RESOURCES / "zoo"
 
@@ -42,8 +43,6 @@ sha256 = io.sha256
 
 def export(model, spec, task: str, out: Path, info: dict) -> dict:
     """Write ``<out>/<name>.pt`` (half precision) and return the manifest fields of the file (sha256, size)."""
-    import torch
-
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{spec.name}.pt"
     state = {k: (v.detach().cpu().half() if v.is_floating_point() else v.detach().cpu())
@@ -56,7 +55,6 @@ def _machine() -> dict:
     import os
 
     import torch
-
 
     dev = device()
     return {"machine": f"{platform.machine()} {platform.processor()}".strip(), "cpus": os.cpu_count(),
@@ -73,9 +71,6 @@ def _relative(path: Optional[str]) -> Optional[str]:
 
 def _test_metrics(model, task: str, test_frames, images, batch: int = 16) -> dict:
     """Metrics of `model` on the evaluation study's test frames (`images`: their RGB, read once)."""
-    import numpy as np
-
-
     predict = seg.predict if task == "segmentation" else dep.predict
     pairs = []
     for i in range(0, len(test_frames), batch):
@@ -105,7 +100,6 @@ def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: boo
     old manifest.
     """
     import numpy as np
-
 
     out = Path(out) if out else ZOO_DIR
     zoo_ds = dataset.ensure_dataset(zoo, progress=progress)
@@ -203,7 +197,6 @@ def pilot(zoo: Study, evaluation: Study, out: Path, frames: int = 300,
     on (like `monolib bench`), not a cached stage."""
     import numpy as np
     import pandas as pd
-
 
     zoo_ds = dataset.ensure_dataset(zoo, progress=progress)
     eval_ds = dataset.ensure_dataset(evaluation, progress=progress)

@@ -38,8 +38,6 @@ def task_environment() -> dict[str, str]:
     """What a worker's notebook kernel needs from the client's environment: the runs and figures folders (absolute),
     the device type of the cells' keys, whether cells run in warm kernels (`monolib.study.kernels`), and the study locks
     the client holds for them (`monolib.locks`)."""
-
-
     return {"MONOLIB_RUNS": str(paths.RUNS.resolve()), "MONOLIB_FIGURES": str(paths.FIGURES.resolve()),
             "MONOLIB_DEVICE": device().type, "MONOLIB_KERNELS": "warm" if kernels.warm_enabled() else "cold",
             locks.ENV: os.environ.get(locks.ENV, "")}  # the study's lock, held by the client for its tasks
@@ -55,7 +53,6 @@ def fingerprint(study_file: str) -> dict:
     resolved; its key)."""
     import dataclasses
     import platform
-
 
     code = {stage: versions.code_version.__wrapped__(stage) for stage in versions.STAGE_MODULES}
     libraries = {"python": platform.python_version()}
@@ -164,7 +161,6 @@ def connect(scheduler: str, study: Study, timeout: Optional[float] = None):
     """A `distributed.Client` of the scheduler, once at least one worker is connected (within `timeout` seconds)
     and every worker has passed `worker_facts`; otherwise one `StudyError` saying what is wrong with which worker."""
     from distributed import Client
-
 
     timeout = timeout or float(os.environ.get("MONOLIB_CONNECT_SECONDS", CONNECT_SECONDS))
     kwargs = {"scheduler_file": scheduler} if Path(scheduler).is_file() else {"address": scheduler_address(scheduler)}

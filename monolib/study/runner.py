@@ -126,7 +126,6 @@ def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retrie
     kernel is discarded after any failure, so no notebook inherits a broken one."""
     import papermill
 
-
     output.parent.mkdir(parents=True, exist_ok=True)
     for attempt in range(retries + 1):
         try:
@@ -336,7 +335,6 @@ def write_run_record(study: Study, times: dict, path: Path) -> None:
     import platform
 
     import torch
-
 
     record = {"study": study.name, "stage_seconds": {k[:-2]: round(v, 1) for k, v in times.items()},
               "total_seconds": round(sum(times.values()), 1), "cpus": os.cpu_count(),

@@ -73,7 +73,6 @@ def measure(base: str = "smoke", dask_workers: tuple[int, ...] = (1, 2)) -> dict
     """Cells per minute of the base study's grid on the local path and on local Dask clusters (see the module)."""
     from distributed import LocalCluster
 
-
     s = runner.prepare(base, progress=False)  # dataset, perception, graphs: cached, not timed
     out = {"study": base, "jobs": s.jobs, "threads_per_cell": s.threads, "engines": {}}
     saved = os.environ.get("MONOLIB_KERNELS")
