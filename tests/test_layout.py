@@ -76,3 +76,34 @@ def test_function_level_imports_of_monolib_only_defer_a_heavy_library():
                                              ("monolib.cli", "entry"), ("monolib.study.runner", "study")])
 def test_wing(module, expected):
     assert wing(module) == expected
+
+
+def test_a_cell_computes_each_upstream_key_once(smoke_study, tmp_path):
+    """Following the study through `run_cell` of a scenario of predicted depth and semantics: the graph stage's key
+    is computed once and passed on (to the cell's key and to the graph stage's loader), and it computes the data
+    key once and hands it to each model's key, rather than each stage reaching back for the keys it depends on."""
+    import sys
+    from collections import Counter
+
+    from monolib.params import load_study
+    from monolib.retrieval import cell
+
+    study = load_study("smoke")
+    sc = study.scenarios["s3"]
+    assert "gt" not in (sc.depth, sc.semantic)
+    calls: Counter = Counter()
+
+    def profile(frame, event, arg):
+        if event == "call" and frame.f_globals.get("__name__", "").startswith("monolib."):
+            calls[f"{frame.f_globals['__name__']}.{frame.f_code.co_name}"] += 1
+
+    sys.setprofile(profile)
+    try:
+        record = cell.run_cell(study, "gcn", "s3", 1.0, study.seed, out_dir=str(tmp_path / "cell"))
+    finally:
+        sys.setprofile(None)
+    assert record["metrics"]
+    assert calls["monolib.graphs.stage.scenario_key"] == 1
+    assert calls["monolib.data.stage.dataset_key"] == 1
+    assert calls["monolib.perception.stage.model_key"] == 2  # its depth net and its segmentation net
+    assert calls["monolib.retrieval.cell.cell_key"] == 1
