@@ -80,7 +80,6 @@ def main(argv: list[str] | None = None) -> int:
             print("stage seconds: " + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in times.items())
                   + f"; total {time.perf_counter() - t0:.0f}")
         elif args.command == "synth":
-
             synth.render_dataset(load_study(args.study), Path(args.out))
         elif args.command == "perception":
             from monolib.perception import stage as perception  # deferred: torch

@@ -220,6 +220,12 @@ class Study:
     def model_names(self) -> list[str]:
         return [self.perception.segmentation.name] + [d.name for d in self.perception.depth]
 
+    def perception_specs(self) -> list[tuple[str, Any, str]]:
+        """``(key in the study file, spec, task)`` of every perception network: the segmentation net, then each
+        depth net."""
+        return [("perception.segmentation", self.perception.segmentation, "segmentation")] + \
+            [(f"perception.depth[{i}]", d, "depth") for i, d in enumerate(self.perception.depth)]
+
     def depth_spec(self, name: str) -> DepthSpec:
         for d in self.perception.depth:
             if d.name == name:
@@ -397,8 +403,7 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"perception.depth[{i}].checkpoint", f"file not found: {resolve_path(d.checkpoint, study.path)}")
     if seg.checkpoint and not resolve_path(seg.checkpoint, study.path).is_file():
         bad("perception.segmentation.checkpoint", f"file not found: {resolve_path(seg.checkpoint, study.path)}")
-    for where, spec, task in [("perception.segmentation", seg, "segmentation")] + \
-            [(f"perception.depth[{i}]", d, "depth") for i, d in enumerate(study.perception.depth)]:
+    for where, spec, task in study.perception_specs():
         if spec.weights and spec.checkpoint:
             bad(f"{where}.weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
         if spec.epochs < 1:

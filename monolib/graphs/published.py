@@ -145,7 +145,6 @@ def select(study: Study) -> dict[str, list[Data]]:
         for g in read_folder(root / split):
             by_setting.setdefault(split, {}).setdefault(g.setting, []).append(g)
     test_names = [s for s in sorted(by_setting["test"]) if len(by_setting["test"][s]) >= pr.frames]
-
     try:
         chosen = protocol_settings(test_names, pr, f"{root / 'test'} ({len(by_setting['test'])} settings)")
     except ProtocolDataError as exc:

@@ -78,7 +78,6 @@ def _frame_nodes(args) -> list[tuple]:
     """Worker: per scenario, the nodes of one frame ``(x, pos, dropped pixels[, error])``, reading every source
     once; `dropped pixels`: labelled pixels left out for their depth (NaN, inf, <= 0)."""
     study, scenarios, key = args
-
     root = str(study.dataset_root)
     if root not in _OPEN:  # one index per worker process, not one per frame
         _OPEN[root] = dataset.open_dataset(study)

@@ -65,7 +65,6 @@ def model_key(study: Study, name: str, dataset_key: Optional[str] = None) -> str
     spec, task = _spec(study, name)
     shipped = checkpoint = None
     if spec.weights:  # the shipped file's identity (its manifest's sha256, checked when it is loaded)
-
         shipped = manifests.read_manifest(resolve_path(spec.weights, study.path))["sha256"]
     if spec.checkpoint:  # an outside file: its content, not its path
         checkpoint = _file_sha256(resolve_path(spec.checkpoint, study.path))
@@ -254,7 +253,6 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
         return model, history, "loaded"
     t0 = time.perf_counter()
     if spec.weights:  # the project's zoo: inference only
-
         model = weights.load(spec, task, spec.weights, study.path)
         manifest = manifests.read_manifest(resolve_path(spec.weights, study.path))
         history = {"epochs": [], "source": str(spec.weights), "sha256": manifest["sha256"],
@@ -397,10 +395,7 @@ def check_weights(study: Study) -> None:
     """The perception stage's check before any work: every shipped weights file of the study (`weights:`) has its
     manifest, and the manifest's network is the one its spec builds (`manifests.check_architecture`, no hashing:
     the file's sha256 is checked when it loads). One `StudyError` naming the spec's key otherwise."""
-    seg = study.perception.segmentation
-    specs = [("perception.segmentation", seg, "segmentation")] + \
-        [(f"perception.depth[{i}]", d, "depth") for i, d in enumerate(study.perception.depth)]
-    for where, spec, task in specs:
+    for where, spec, task in study.perception_specs():
         if spec.weights:
             try:
                 manifests.check_architecture(spec, task, resolve_path(spec.weights, study.path), f"{where}.weights")

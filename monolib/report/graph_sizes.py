@@ -23,7 +23,6 @@ SIZE_COLUMNS = ["scenario", "label", "threshold", "test_graphs", "test_nodes", "
 
 def _scenario_thresholds(study: Study) -> dict[str, list[float]]:
     """The thresholds each scenario's graph cells run at (every graph method of the grid)."""
-
     out: dict[str, set] = {}
     for c in grid(study):
         if methods.kind(c.method, study) == "graph":
@@ -40,7 +39,6 @@ def graph_sizes(study: Study) -> pd.DataFrame:
     frames with any (NaN and -1 for graphs that were not built here: published graphs); ``same_graphs_as``: the smallest
     threshold whose graphs (every split) are identical (`identical_thresholds`; NaN when none). Columns
     `SIZE_COLUMNS`."""
-
     rows = []
     for sc, thresholds in _scenario_thresholds(study).items():
         data = load_file(study, sc)
@@ -68,7 +66,6 @@ def graph_sizes(study: Study) -> pd.DataFrame:
 
 def graph_sizes_markdown(table: pd.DataFrame) -> str:
     """``graph_sizes.md``: the table of `graph_sizes` for a reader."""
-
     lines = ["**Graph sizes.** Nodes and edges per scene graph for each scenario and edge threshold: means over the "
              "test split's graphs and over the training split's (training and validation settings). An edge is a node "
              "pair closer than the threshold (the encoder reads it in both directions); 0: no edges, the encoder sees "
@@ -103,7 +100,6 @@ def graph_sizes_markdown(table: pd.DataFrame) -> str:
 def write_graph_sizes(study: Study, out_dir: Path | None = None) -> dict[str, Path]:
     """Write ``graph_sizes.csv`` and ``graph_sizes.md`` (`graph_sizes`) into `out_dir` (default: the study's
     figures folder, `monolib.paths.figures_dir`); nothing when the study has no graph method."""
-
     table = graph_sizes(study)
     if table.empty:
         return {}

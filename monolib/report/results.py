@@ -281,37 +281,17 @@ def hit_matrix(rankings: pd.DataFrame) -> tuple[pd.Index, np.ndarray]:
 
 def recompute_metrics(rankings: pd.DataFrame, recall_k, precision_k,
                       positives_per_setting: int | Mapping[str, int] | pd.Series | None = None) -> dict[str, float]:
-    """recall@k and precision@k (percent) recomputed from a cell's ``rankings.csv``, vectorised.
+    """recall@k and precision@k (percent) recomputed from a cell's ``rankings.csv`` (one protocol's rows), its
+    columns checked: the cells' own definition (`monolib.retrieval.metrics.metrics_from_rankings`).
 
     ``positives_per_setting`` None (default, the paper's definition): precision@k divides by k. Given (one number,
     or a mapping setting -> number of positives), it divides by ``min(k, positives of the query's setting)``, the
     best reachable share when a setting has fewer positives than k. Raises ValueError when a k exceeds the
     depth of the rankings (the cells store the top 10).
     """
-    queries, hits = hit_matrix(rankings)
-    ks = [int(k) for k in recall_k] + [int(k) for k in precision_k]
-    if ks and max(ks) > hits.shape[1]:
-        raise ValueError(f"rankings: k={max(ks)} needs the top {max(ks)}, the rankings hold the top {hits.shape[1]}")
-    if len(queries) == 0:
-        raise ValueError("rankings: no query")
-    found = np.cumsum(hits, axis=1)     # own-setting frames within the top r+1
-    out: dict[str, float] = {}
-    for k in recall_k:
-        out[f"recall@{int(k)}"] = float(100.0 * np.mean(found[:, int(k) - 1] > 0))
-    if positives_per_setting is not None:
-        setting_of = rankings.drop_duplicates("query").set_index("query")["query_setting"].reindex(queries)
-        if isinstance(positives_per_setting, (int, np.integer, float)):
-            npos = np.full(len(queries), float(positives_per_setting))
-        else:
-            npos = setting_of.map(pd.Series(positives_per_setting)).to_numpy(dtype=float)
-            if np.isnan(npos).any():
-                raise ValueError(f"positives_per_setting: no count for settings "
-                                 f"{sorted(set(setting_of[np.isnan(npos)]))}")
-    for k in precision_k:
-        k = int(k)
-        den = np.minimum(k, npos) if positives_per_setting is not None else float(k)
-        out[f"precision@{k}"] = float(100.0 * np.mean(found[:, k - 1] / den))
-    return out
+    check_columns(rankings, RANKING_COLUMNS, "rankings")
+    one_protocol_only(rankings, "rankings")
+    return cell_metrics_mod.metrics_from_rankings(rankings, recall_k, precision_k, positives_per_setting)
 
 
 def check_protocol(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Optional[int] = None) -> dict:
