@@ -14,6 +14,7 @@ from __future__ import annotations
 import ast
 import functools
 import hashlib
+from pathlib import Path
 
 from monolib import paths
 
@@ -85,12 +86,17 @@ def source_version(source: str, filename: str = "<source>") -> str:
     return hashlib.sha256(ast.dump(tree, include_attributes=False).encode()).hexdigest()[:12]
 
 
+def module_file(module: str) -> Path:
+    """The source file of a monolib module named relative to the package (``data.synth.rooms``, ``paths``):
+    ``monolib/<a>/<b>.py``, or a package's ``monolib/<a>/<b>/__init__.py`` (which may not exist)."""
+    path = paths.PACKAGE.joinpath(*module.split("."))
+    return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+
+
 @functools.lru_cache(maxsize=None)
 def module_version(module: str) -> str:
-    """`source_version` of one module (``monolib/<module>.py``, or a package's ``monolib/<module>/__init__.py``),
-    its `PRESENTATION_FUNCTIONS` left out."""
-    path = paths.PACKAGE.joinpath(*module.split("."))
-    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    """`source_version` of one module (`module_file`), its `PRESENTATION_FUNCTIONS` left out."""
+    path = module_file(module)
     text = path.read_text()
     drop = PRESENTATION_FUNCTIONS.get(module)
     if drop:

@@ -215,10 +215,8 @@ def test_keys_hold_the_device_and_the_deterministic_mode(study):
 
 
 def _module_file(module: str):
-    """``monolib/<a>/<b>.py`` of a module named ``a.b`` relative to the package, ``monolib/<a>/<b>/__init__.py`` of a
-    package (None: nothing)."""
-    f = paths.PACKAGE.joinpath(*module.split("."))
-    f = f / "__init__.py" if f.is_dir() else f.with_suffix(".py")
+    """The module's file (`versions.module_file`); None when there is none."""
+    f = versions.module_file(module)
     return f if f.is_file() else None
 
 
