@@ -102,6 +102,8 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
 
 
 META_KEYS = ("study", "study_file", "cell", "method", "scenario", "threshold", "seed", "models", "width", "height")
+# a database written before `projection` was stored (2026-12-01) holds graphs of the exact camera, the only one then
+DEFAULT_PROJECTION = "exact"
 
 
 def write_database(out: str | Path, study: Study, cell: dict, model: gcn.GraphEncoder, frames: list[str],
@@ -122,6 +124,7 @@ def write_database(out: str | Path, study: Study, cell: dict, model: gcn.GraphEn
         "threshold": cell["threshold"], "seed": cell["seed"], "cell_recall@1": cell_metrics(cell)[PAPER]["recall@1"],
         "models": {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)},
         "width": study.dataset.width, "height": study.dataset.height, "frames": len(frames),
+        "projection": study.projection(cell["scenario"]),  # the query graphs are built in the database's camera
     })
     return out
 
@@ -197,7 +200,8 @@ class Localizer:
         t1 = time.perf_counter()
         depth = depth_mod.predict(self.depth, frame[None])[0]
         t2 = time.perf_counter()
-        x, pos = scene_nodes(frame, depth, semantic, Camera.canonical(w, h))
+        x, pos = scene_nodes(frame, depth, semantic, Camera.canonical(w, h),
+                             self.meta.get("projection", DEFAULT_PROJECTION))
         threshold = float(self.meta["threshold"])  # "inf" reads as inf
         both = self.encoder.spec.edges == "both"
         g = graph.at_threshold(graph.complete_graph(x, pos, "query", "query"), threshold, both)

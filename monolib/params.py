@@ -93,12 +93,25 @@ class PerceptionSpec:
     depth: list[DepthSpec] = field(default_factory=lambda: [DepthSpec()])
 
 
+PROJECTIONS = ("monograph", "exact")  # the back-projections of the graph stage (`monolib.graphs.build`)
+
+
+@dataclass
+class GraphsSpec:
+    """How the graph stage lifts a frame into 3D. `projection`: ``monograph``, the original code's back-projection
+    (its 1024x768 pinhole camera, f 577.35 / 433.01 px, scaled to the study's resolution, with the Euclidean
+    `depth_meters` as z: the space in which the paper's thresholds and the published graphs' lengths were measured),
+    or ``exact``, each scene's own `M_cam_from_uv` with planar depth (true metres)."""
+    projection: str = "monograph"
+
+
 @dataclass
 class Scenario:
     depth: str = "gt"                        # gt or a depth model name
     semantic: str = "gt"                     # gt or the segmentation model name
     label: str = ""
     depth_scale: float = 1.0                 # multiply the depth source (controlled depth-scale experiments)
+    projection: Optional[str] = None         # monograph | exact: this scenario's back-projection (default: graphs.projection)
     thresholds: Optional[list[float]] = None # run this scenario at these thresholds only (default: the study's)
     in_tables: bool = True                   # shown in Tables 1-2 (False: a controlled experiment with its own figure)
 
@@ -172,6 +185,7 @@ class Study:
     extends: Optional[str] = None            # a base study: its file is the default of every key, and its dataset,
                                              # perception models, predictions and graphs are reused (runs/<base>/)
     dataset: DatasetSpec = field(default_factory=DatasetSpec)
+    graphs: GraphsSpec = field(default_factory=GraphsSpec)
     perception: PerceptionSpec = field(default_factory=PerceptionSpec)
     scenarios: dict[str, Scenario] = field(default_factory=lambda: {"s1": Scenario(label="GT depth, GT semantics")})
     thresholds: list[float] = field(default_factory=lambda: [1.0, 2.0, 5.0, 10.0, math.inf])
@@ -202,6 +216,10 @@ class Study:
     @property
     def metadata_dir(self) -> Optional[Path]:
         return resolve_path(self.dataset.metadata_dir, self.path) if self.dataset.metadata_dir else None
+
+    def projection(self, scenario: str) -> str:
+        """The back-projection of a scenario's graphs: its own `projection`, else the study's `graphs.projection`."""
+        return self.scenarios[scenario].projection or self.graphs.projection
 
     def method_kind(self, method: str) -> str:
         if method in self.variants:
@@ -414,6 +432,8 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
         if spec.weights and check_files and not resolve_path(spec.weights, study.path).is_file():
             bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights, study.path)}")
+    if study.graphs.projection not in PROJECTIONS:
+        bad("graphs.projection", f"expected one of {', '.join(PROJECTIONS)}, got {study.graphs.projection!r}")
     for sname, sc in study.scenarios.items():
         if sc.depth != "gt" and sc.depth not in [d.name for d in study.perception.depth]:
             bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {[d.name for d in study.perception.depth]}, got {sc.depth!r}")
@@ -423,6 +443,12 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"scenarios.{sname}.depth_scale", f"expected > 0, got {sc.depth_scale}")
         if study.graphs_root and (sc.depth != "gt" or sc.semantic != "gt"):
             bad(f"scenarios.{sname}", "published graphs only hold ground-truth scenarios (depth: gt, semantic: gt)")
+        if sc.projection is not None and sc.projection not in PROJECTIONS:
+            bad(f"scenarios.{sname}.projection", f"expected one of {', '.join(PROJECTIONS)}, got {sc.projection!r}")
+        if study.graphs_root and study.projection(sname) != "monograph":
+            bad(f"scenarios.{sname}.projection" if sc.projection else "graphs.projection",
+                "published graphs hold the original code's lengths (projection: monograph); they cannot be "
+                "back-projected again")
 
     for m in study.methods:
         if m not in METHODS:

@@ -119,3 +119,29 @@ def test_an_image_baseline_cell_evaluates_both_protocols(smoke, tmp_path):
     for name, r in results.split_protocols(rankings).items():
         assert results.recompute_metrics(r, [1, 5, 10], [2, 4, 6]) == pytest.approx(rec["metrics"][name])
     assert np.load(tmp_path / "cell" / "embeddings.npy").shape[0] == len(sel.test)
+
+
+def test_a_frames_image_descriptor_is_computed_once_per_colour_file(tmp_path):
+    """`per_frame` (what the seeds of one baseline share in a warm kernel): the value of a real Hypersim-layout
+    frame's image, computed once per colour file, and computed again once the file is rewritten."""
+    from hypersim_files import write_setting
+
+    from monolib.data.hypersim import HypersimDataset
+    from monolib.io import read_h5, write_h5
+
+    write_setting(tmp_path, "ai_001_001", frames=1)
+    frame = HypersimDataset(tmp_path).frame("ai_001_001", "cam_00", 0)
+    calls = []
+
+    def describe(rgb):
+        calls.append(1)
+        return baselines.color_hist(rgb)
+
+    first = baselines.per_frame(frame, "test_hist", describe)
+    np.testing.assert_array_equal(first, baselines.color_hist(frame.rgb))
+    assert baselines.per_frame(frame, "test_hist", describe) is first and len(calls) == 1
+    colour = read_h5(frame.files["color"])
+    write_h5(frame.files["color"], (colour * 0.5).astype(colour.dtype))  # a new file, same path
+    again = HypersimDataset(tmp_path).frame("ai_001_001", "cam_00", 0)
+    baselines.per_frame(again, "test_hist", describe)
+    assert len(calls) == 2

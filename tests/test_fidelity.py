@@ -108,7 +108,8 @@ def test_empty_inputs_give_nan_not_a_crash(tmp_path, monkeypatch):
     study = type("S", (), {"name": "empty_test"})()
     _, md = fidelity.write(study, {"this study, train": fidelity.split_statistics([]), "this study, test": stats})
     text = md.read_text()
-    assert "NaN / NaN / NaN / NaN" in text and "0 of 11 pass" in text and "wall colour ratio >= 2.0: NaN FAIL" in text
+    assert "NaN / NaN / NaN / NaN" in text and "0 of 23 pass" in text and "wall colour ratio (graph node colours) >= 2.0: NaN FAIL" in text
+    assert "pixel depth, median in [4, 5.6]: NaN FAIL" in text
 
 
 def test_reference_file_is_read_and_the_tables_are_written(tmp_path, monkeypatch):
@@ -134,13 +135,19 @@ def test_reference_file_is_read_and_the_tables_are_written(tmp_path, monkeypatch
     md = md_path.read_text()
     assert ("| nodes per graph: mean / median / p10 / p90 | 3.0 / 3 / 3 / 3 | 3.0 / 3 / 3 / 3 | 8.2 / 9 / 3 / 12 "
             "| 2.8 / 2 / 1 / 6 |") in md
-    assert "| wall colour sd within / between settings (ratio) | 0.20 / 1.00 (5.0) |" in md
+    assert "| wall colour sd within / between settings (ratio), node colours | 0.20 / 1.00 (5.0) |" in md
+    assert "| wall colour sd within / between settings (ratio), the graphs' node colours | NaN / NaN (NaN) |" in md
+    assert "| wall colour sd within / between settings (ratio), HDR color.hdf5 medians | NaN / NaN (NaN) |" in md
+    assert ref["real Hypersim, train"]["pair length (monograph), median"] == 4.31
+    assert ref["real Hypersim, test"]["edges per graph at 10 m (monograph)"] == 4.07
+    assert ref["real Hypersim, train"]["pixel depth, share beyond 20 m"] == 0.059
+    assert ref["real Hypersim, train"]["wall HDR colour sd, within settings"] == 0.47
     assert "| label-set Jaccard within / across settings | 1.00 / 0.50 |" in md
     assert "real Hypersim, train (169 settings)" in md and "this study, train (2 settings)" in md
     assert "Label frequency, real Hypersim, train (share of graphs): wall 0.91, floor 0.86, otherprop 0.73" in md
     assert "Label frequency, this study, train (share of graphs): wall 1.00, floor 1.00, cabinet 0.50, bed 0.50." in md
-    assert "nodes per graph mean 7-10: 3.0 FAIL" in md and "wall colour ratio >= 2.0: 5.0 pass" in md
-    assert "floor colour ratio >= 2.0:" in md and "wall in >= 30% of graphs: 1.00 pass" in md
+    assert "nodes per graph mean 7-10: 3.0 FAIL" in md and "wall colour ratio (graph node colours) >= 2.0: 5.0 pass" in md
+    assert "floor colour ratio (graph node colours) >= 2.0:" in md and "wall in >= 30% of graphs: 1.00 pass" in md
     assert "otherprop in >= 30% of graphs: 0.00 FAIL" in md
 
 
@@ -148,9 +155,18 @@ def test_acceptance_targets_pass_when_met():
     stats = {"nodes per graph, mean": 8.0, "label-set Jaccard, within settings": 0.7,
              "label-set Jaccard, across settings": 0.3, "wall colour ratio": 2.5, "floor colour ratio": 2.0}
     stats.update({fidelity.frequency_name(n): 0.3 for n in fidelity.TARGET_FREQUENT})
+    stats.update({"pixel depth, median": 4.79, "pixel depth, p90": 13.8, "pixel depth, share beyond 20 m": 0.059,
+                  "pair length (monograph), median": 4.31, "pairs closer than 1 m (monograph)": 0.04,
+                  "pairs closer than 2 m (monograph)": 0.142, "pairs closer than 5 m (monograph)": 0.6,
+                  "pairs closer than 10 m (monograph)": 0.931, "wall HDR colour sd, within settings": 0.47,
+                  "wall HDR colour ratio": 2.6, "floor HDR colour sd, within settings": 0.5,
+                  "floor HDR colour ratio": 2.6})  # real Hypersim's own numbers pass
     assert all(ok for _, ok in fidelity.acceptance(stats))
     stats["label-set Jaccard, across settings"] = 0.41
     assert [ok for _, ok in fidelity.acceptance(stats)].count(False) == 1
+    stats["wall HDR colour ratio"] = 10.7  # the mini-Hypersim of 7dc39ec: one wall four times too alike
+    stats["pixel depth, median"] = 2.86
+    assert [ok for _, ok in fidelity.acceptance(stats)].count(False) == 3
 
 
 def random_split(rng: random.Random, settings: int) -> list[Data]:
@@ -207,27 +223,6 @@ def test_agrees_with_the_reference_script(tmp_path, seed):
     assert f"wall {ours['wall colour ratio']:.1f} floor {ours['floor colour ratio']:.1f}" in printed
 
 
-def test_a_study_cache_through_the_command(tmp_path, monkeypatch, capsys):
-    """`monolib fidelity STUDY` reads the study's ground-truth graph cache and writes both files."""
-    from monolib import cli
-    from monolib.graphs import stage as scenegraphs
-    from monolib.params import load_study
-
-    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
-    study = load_study("smoke")
-    assert fidelity.ground_truth_scenario(study) == "s1"
-    path = scenegraphs.graphs_path(study, "s1")
-    path.parent.mkdir(parents=True)
-    torch.save({"scenario": "s1", "graphs": {"train": two_settings(), "val": [], "test": two_settings()[:10]},
-                "seconds": 0.0}, path)
-    assert cli.main(["fidelity", "smoke"]) == 0
-    out = capsys.readouterr().out
-    assert "| label-set Jaccard within / across settings | 1.00 / 0.50 | 1.00 / NaN |" in out
-    assert (paths.figures_dir("smoke") / "fidelity.csv").is_file()
-    assert (paths.figures_dir("smoke") / "fidelity.md").read_text() in out
-
-
 @pytest.mark.skipif(not SAMPLE.exists(), reason="shared published graph sample absent")
 def test_the_real_published_sample():
     graphs = [g for p in sorted(SAMPLE.parent.glob("ai_*_graphs.pt")) for g in published.read_file(p)]
@@ -246,3 +241,162 @@ def test_the_real_published_sample():
                  "floor colour ratio"):
         assert np.isfinite(halves[name]), name
     assert halves["wall colour ratio"] < 1  # two halves of one place: no more different than frames of it
+
+
+# ---- geometry and light (the doc's "Geometry" and "Light"), like with like -------------------------------------
+
+def pair_graph(setting: str, lengths: list[float], frame: str = "") -> Data:
+    """A graph as the cache holds it, with its pairs' lengths (positions are not read)."""
+    n = 1
+    while n * (n - 1) // 2 < len(lengths):
+        n += 1
+    i, j = torch.triu_indices(n, n, offset=1)[:, : len(lengths)]
+    return Data(x=torch.zeros(n, 4), pair_index=torch.stack([i, j]), pair_len=torch.tensor(lengths),
+                setting=setting, frame=frame, num_nodes=n)
+
+
+def test_pair_statistics_known_answers():
+    """Frames with pairs 0.5, 1.5, 3, 7, 12 m, and two with no node pair (a one-node and an empty graph)."""
+    graphs = [pair_graph("ai_001_001", [0.5, 1.5, 3.0, 7.0, 12.0], f"a/{i}") for i in range(10)]
+    graphs += [pair_graph("ai_002_001", [], f"b/{i}") for i in range(2)]
+    st = fidelity.pair_statistics(graphs, "monograph")
+    assert st["pairs per graph (monograph)"] == 50 / 12
+    assert st["pair length (monograph), p10"] == 0.5 and st["pair length (monograph), p90"] == 12.0
+    assert st["pair length (monograph), median"] == 3.0
+    assert st["pair length (monograph), mean"] == pytest.approx(4.8)
+    for t, share, edges in ((1, 0.2, 10 / 12), (2, 0.4, 20 / 12), (5, 0.6, 30 / 12), (10, 0.8, 40 / 12)):
+        assert st[f"pairs closer than {t} m (monograph)"] == pytest.approx(share)
+        assert st[f"edges per graph at {t} m (monograph)"] == edges  # a pair counted once
+    empty = fidelity.pair_statistics([pair_graph("ai_001_001", [], f"a/{i}") for i in range(10)], "exact")
+    assert empty["pairs per graph (exact)"] == 0.0 and math.isnan(empty["pair length (exact), median"])
+
+
+def test_depth_statistics_known_answers():
+    st = fidelity.depth_statistics(np.arange(1, 101, dtype=np.float32))
+    assert st["pixel depth, median"] == 50.5
+    assert st["pixel depth, p10"] == pytest.approx(10.9) and st["pixel depth, p90"] == pytest.approx(90.1)
+    assert st["pixel depth, share beyond 20 m"] == 0.8
+    assert math.isnan(fidelity.depth_statistics(np.zeros(0))["pixel depth, median"])
+
+
+def light_dataset(root, frames: int = 20):
+    """Two training settings of `frames` frames (a wall 4 m ahead over a floor, canonical camera) whose files hold
+    known answers: depth 3 m but for the top quarter of rows at 25 m; HDR wall colour exp(c +- 0.2) (c = -1 in the
+    first setting, -3 in the second, alternating every second frame, so that every 2nd frame alternates too), floor
+    exp(-2 +- 0.1) and exp(-2.5 +- 0.1)."""
+    from hypersim_files import write_setting
+
+    from monolib.data.hypersim import Camera
+    from monolib.io import read_h5, write_h5
+
+    cam = Camera.canonical(64, 48)
+    keys = []
+    for setting, wall, floor in (("ai_001_001", -1.0, -2.0), ("ai_002_001", -3.0, -2.5)):
+        write_setting(root, setting, M=cam.M_cam_from_uv, frames=frames, split="train")
+        images = root / setting / "images"
+        for i in range(frames):
+            geo, fin = images / "scene_cam_00_geometry_hdf5", images / "scene_cam_00_final_hdf5"
+            labels = read_h5(geo / f"frame.{i:04d}.semantic.hdf5")
+            depth = np.full(labels.shape, 3.0, np.float32)
+            depth[:12] = 25.0
+            write_h5(geo / f"frame.{i:04d}.depth_meters.hdf5", depth)
+            sign = 1 if (i // 2) % 2 else -1
+            colour = np.full(labels.shape + (3,), 0.7, np.float32)
+            colour[labels == 1] = math.exp(wall + 0.2 * sign)
+            colour[labels == 2] = math.exp(floor + 0.1 * sign)
+            write_h5(fin / f"frame.{i:04d}.color.hdf5", colour)
+            keys.append((setting, f"{setting}/cam_00/{i:04d}"))
+    return keys
+
+
+def hypersim_study(tmp_path, root, projection: str = "exact"):
+    import yaml
+
+    from monolib.params import load_study
+
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data.update(name="light_test", scenarios={"s1": {"depth": "gt", "semantic": "gt"}}, graphs={"projection": projection})
+    data["dataset"].update(source="hypersim", root=str(root), workers=1, train_frames_per_setting=20)
+    data["protocol"].update(settings=2, siblings=0, frames=2, queries=1, positives=1)
+    data["gcn"].update(val_settings=0)
+    p = tmp_path / "study.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return load_study(p)
+
+
+def test_frame_statistics_known_answers_from_hypersim_files(tmp_path, monkeypatch):
+    """Pixel depth and HDR colour read from the files: 3 m and 25 m (a quarter beyond 20 m); HDR wall sd 0.2 within
+    and 1.0 between the two settings (ratio 5), floor 0.1 and 0.25 (2.5); a missing colour file is counted."""
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    root = tmp_path / "data"
+    keys = light_dataset(root)
+    study = hypersim_study(tmp_path, root)
+    graphs = [Data(setting=s, frame=k, num_nodes=0) for s, k in keys]
+    sample = fidelity.light_sample(graphs)
+    assert [g.frame for g in sample] == [k for _, k in keys][::2]  # every 2nd, in order
+    st = fidelity.frame_statistics(study, sample)
+    assert st["pixel depth, frames"] == 20
+    assert st["pixel depth, pixels"] == 20 * 48 * 64
+    assert st["pixel depth, median"] == 3.0 and st["pixel depth, p90"] == 25.0
+    assert st["pixel depth, share beyond 20 m"] == 0.25
+    assert st["wall HDR colour sd, within settings"] == pytest.approx(0.2, abs=1e-6)
+    assert st["wall HDR colour sd, between settings"] == pytest.approx(1.0, abs=1e-6)
+    assert st["wall HDR colour ratio"] == pytest.approx(5.0, abs=1e-4)
+    assert st["floor HDR colour sd, within settings"] == pytest.approx(0.1, abs=1e-6)
+    assert st["floor HDR colour ratio"] == pytest.approx(2.5, abs=1e-4)
+    assert st["frames unreadable"] == 0
+    (root / "ai_002_001" / "images" / "scene_cam_00_final_hdf5" / "frame.0004.color.hdf5").unlink()
+    again = fidelity.frame_statistics(study, sample)
+    assert again["frames unreadable"] == 1 and again["wall HDR colour sd, within settings"] > 0
+
+
+def original_pair_lengths(root, setting: str, frame: int) -> np.ndarray:
+    """The original code's node pair lengths of one frame (GenerateSceneGraph.py, as the shared doc gives it): a
+    loop over labels, per-axis medians of x = (j - W // 2) z / f_w, y = (i - H // 2) z / f_h, z = depth_meters."""
+    from monolib.io import read_h5
+
+    geo = root / setting / "images" / "scene_cam_00_geometry_hdf5"
+    z = read_h5(geo / f"frame.{frame:04d}.depth_meters.hdf5").astype(np.float64)
+    sem = read_h5(geo / f"frame.{frame:04d}.semantic.hdf5")
+    h, w = z.shape
+    fov_y = 2 * math.atan(768 * math.tan(1.0471975803375244 / 2) / 1024)
+    f_h = 1000 * math.tan(fov_y / 2) * h / 768
+    f_w = 1000 * math.tan(fov_y / 2) * 1024 / 768 * w / 1024
+    nodes = []
+    for label in sorted(set(sem[(sem >= 1) & np.isfinite(z)].tolist())):
+        ii, jj = np.nonzero((sem == label) & np.isfinite(z))
+        zz = z[ii, jj]
+        nodes.append([np.median((jj - w // 2) * zz / f_w), np.median((ii - h // 2) * zz / f_h), np.median(zz)])
+    nodes = np.array(nodes)
+    a, b = np.triu_indices(len(nodes), 1)
+    return np.linalg.norm(nodes[a] - nodes[b], axis=1)
+
+
+def test_an_exact_study_measures_its_pairs_in_both_cameras(tmp_path, monkeypatch, capsys):
+    """`monolib fidelity` on an `exact` study: its graphs in its own camera, and the same frames built again in the
+    original code's camera, whose lengths are those of the original formula on the files; fidelity.md shows both."""
+    from monolib import cli
+    from monolib.graphs import stage as scenegraphs
+    from hypersim_files import write_setting
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
+    root = tmp_path / "data"
+    light_dataset(root)
+    for setting in ("ai_003_001", "ai_004_001"):
+        write_setting(root, setting, frames=2, split="test")
+    study = hypersim_study(tmp_path, root, "exact")
+    monograph = fidelity.projected_graphs(study, "s1", "monograph")["train"]
+    assert len(monograph) == 40
+    for g in monograph[:3]:
+        setting, _, index = g.frame.split("/")
+        assert g.pair_len.numpy() == pytest.approx(original_pair_lengths(root, setting, int(index)), rel=1e-5)
+    exact = scenegraphs.load(study, "s1")["train"]
+    assert not np.allclose(exact[0].pair_len.numpy(), monograph[0].pair_len.numpy(), rtol=0.05)
+    assert (tmp_path / "runs" / "light_test" / "graphs").glob("s1_monograph-*.pt")
+    assert cli.main(["fidelity", str(tmp_path / "study.yaml")]) == 0
+    out = capsys.readouterr().out
+    assert "| pair length p10 / median / mean / p90 (m), monograph camera |" in out
+    assert "| pair length p10 / median / mean / p90 (m), exact camera |" in out
+    assert "pixel depth, median in [4, 5.6]: 3.00 FAIL" in out
+    assert "wall HDR colour ratio in [2, 4]: 5.0" in out

@@ -176,3 +176,87 @@ def test_the_original_double_loop_builds_the_same_graph():
     np.testing.assert_allclose(g.pos.numpy(), pos, atol=1e-5)
     assert sorted(map(tuple, g.edge_index.t().tolist())) == sorted((i, j) for i, j, _ in edges)
     assert 0 < len(edges) < len(x) * (len(x) - 1)
+
+
+# ---- the original code's back-projection (graphs.projection: monograph) --------------------------------------
+
+def test_monograph_projection_of_one_hand_computed_pixel():
+    """One labelled pixel (row 1, column 6) of an 8x6 frame at Euclidean distance 3 m: the original code puts it at
+    x = (6 - 8 // 2) z / f_w, y = (1 - 6 // 2) z / f_h, z = 3, with f = 577.35 / 433.01 px scaled by 8 / 1024."""
+    f_w, f_h = 577.3502691896258 * 8 / 1024, 433.0127018922193 * 6 / 768  # 1000 tan(fov_y / 2), f_h * 1024 / 768
+    distance = np.full((6, 8), np.nan, np.float32)
+    distance[1, 6] = 3.0
+    semantic = np.full((6, 8), -1, np.int16)
+    semantic[1, 6] = 9
+    planar = CAM.planar_from_euclidean(distance)  # the graph stage's depth sources are planar
+    x, pos = scene_nodes(None, planar, semantic, CAM, "monograph")
+    assert x[:, 0].tolist() == [9.0]
+    assert pos[0] == pytest.approx([2 * 3.0 / f_w, -2 * 3.0 / f_h, 3.0], rel=1e-6)
+    # the exact camera puts the same pixel elsewhere: the pixel centre's ray, planar depth as -z
+    _, exact = scene_nodes(None, planar, semantic, CAM, "exact")
+    assert np.linalg.norm(exact[0]) == pytest.approx(3.0, rel=1e-6)
+    assert not np.allclose(np.abs(exact[0]), np.abs(pos[0]), atol=0.05)
+
+
+def test_monograph_projection_gives_the_same_nodes_at_two_resolutions():
+    """A depth map and its 2x upsampling (each pixel four times) give the same nodes: z exactly, x and y within the
+    quarter pixel by which the principal point (W // 2, H // 2) and the pixel grid shift at the finer size."""
+    rng = np.random.default_rng(3)
+    distance = np.repeat(np.repeat(rng.uniform(1.0, 12.0, (3, 4)), 4, 0), 4, 1).astype(np.float32)  # 12 x 16 blocks
+    semantic = np.repeat(np.repeat(np.arange(12).reshape(3, 4) + 1, 4, 0), 4, 1).astype(np.int16)
+    nodes = {}
+    for scale in (1, 2):
+        d = np.repeat(np.repeat(distance, scale, 0), scale, 1)
+        s = np.repeat(np.repeat(semantic, scale, 0), scale, 1)
+        cam = Camera.canonical(16 * scale, 12 * scale)
+        nodes[scale] = scene_nodes(None, cam.planar_from_euclidean(d), s, cam, "monograph")
+    (x1, p1), (x2, p2) = nodes[1], nodes[2]
+    assert np.array_equal(x1, x2)
+    assert p2[:, 2] == pytest.approx(p1[:, 2], rel=1e-6)
+    f = np.array([577.3502691896258 * 16 / 1024, 433.0127018922193 * 12 / 768])  # f_w, f_h at the coarse size
+    shift = 0.25 * p1[:, 2:] / f  # a quarter pixel at each node's depth
+    assert (np.abs(p2[:, :2] - p1[:, :2]) <= shift + 1e-5).all()
+    # and the lengths with them, within the two nodes' shifts: the metres do not depend on the resolution
+    g1, g2 = complete_graph(x1, p1), complete_graph(x2, p2)
+    i, j = g1.pair_index.numpy()
+    bound = np.linalg.norm(shift, axis=1)
+    assert (np.abs(g2.pair_len.numpy() - g1.pair_len.numpy()) <= bound[i] + bound[j] + 1e-5).all()
+
+
+def test_exact_projection_is_unchanged_bit_for_bit():
+    """The exact camera's nodes of a seeded frame (canonical camera: a diagonal M, so no fused multiply-add can move
+    a bit) hash to what the code of 7dc39ec, before the projections, gave."""
+    import hashlib
+
+    rng = np.random.default_rng(25)
+    h, w = 48, 64
+    depth = rng.uniform(0.5, 9.0, (h, w)).astype(np.float32)
+    depth[rng.random((h, w)) < 0.05] = np.nan
+    semantic = rng.integers(-1, 13, (h, w)).astype(np.int16)
+    rgb = rng.integers(0, 256, (h, w, 3)).astype(np.uint8)
+    x, pos = scene_nodes(rgb, depth, semantic, Camera.canonical(w, h), "exact")
+    digest = hashlib.sha256(np.ascontiguousarray(x).tobytes() + np.ascontiguousarray(pos).tobytes()).hexdigest()
+    assert digest == "dd84e1b9df932da40c0da41916e6b52c0be41ad52e90704a4404db5bf24166e8"
+    assert np.array_equal(pos, scene_nodes(rgb, depth, semantic, Camera.canonical(w, h))[1])  # the default
+
+
+def test_an_unknown_projection_is_refused():
+    rgb, depth, semantic = frame_with_blocks()
+    with pytest.raises(ValueError, match="projection: expected one of monograph, exact, got 'pinhole'"):
+        scene_nodes(rgb, depth, semantic, CAM, "pinhole")
+
+
+def test_a_graphs_file_is_read_once_per_version_of_it(tmp_path):
+    """The graph stage's reader keeps what it read by the file's identity (the cells a warm kernel runs in a row
+    read their scenario's file once) and reads a rebuilt file again."""
+    from monolib.graphs import stage as scenegraphs
+    from monolib.io import save_torch
+
+    path = tmp_path / "s1-key.pt"
+    rgb, depth, semantic = frame_with_blocks()
+    one = complete_graph(*scene_nodes(rgb, depth, semantic, CAM), "ai_001_001", "f")
+    save_torch(path, {"graphs": {"train": [one], "val": [], "test": []}})
+    first = scenegraphs._read_graphs(path)
+    assert scenegraphs._read_graphs(path) is first
+    save_torch(path, {"graphs": {"train": [one, one], "val": [], "test": []}})  # rebuilt (atomic rename)
+    assert len(scenegraphs._read_graphs(path)["graphs"]["train"]) == 2

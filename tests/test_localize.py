@@ -75,6 +75,18 @@ def test_database_files_read_back(tmp_path):
     assert meta["study_file"] == str(tmp_path / "study.yaml") and meta["frames"] == 12
     assert frames.setting.drop_duplicates().tolist() == SETTINGS and emb.shape == (12, 64)
     np.testing.assert_array_equal(emb, np.random.default_rng(0).normal(size=(12, 64)).astype(np.float32))
+    assert meta["projection"] == "monograph"  # the query graphs are built in the camera of the database's graphs
+
+
+def test_a_database_keeps_its_scenarios_camera(tmp_path):
+    def exact(d):
+        d["scenarios"]["s3"]["projection"] = "exact"
+    study = load_study(study_file(tmp_path, exact))
+    cell = {"folder": str(tmp_path / "cell"), "method": "gcn", "scenario": "s3", "threshold": 1.0, "seed": 0,
+            "metrics": {"paper": {"recall@1": 50.0}}}
+    db = localize.write_database(tmp_path / "db", study, cell, GraphEncoder(study.gcn_spec("gcn")), ["a"], ["s"],
+                                 np.zeros((1, 64), np.float32))
+    assert localize.read_database(db)[0]["projection"] == "exact"
 
 
 def test_no_database_folder(tmp_path, runs, image, capsys):

@@ -98,6 +98,11 @@ def write(tmp_path, change):
     (lambda d: d["perception"]["segmentation"].update(backbone="efficientnet_lite9"), "perception.segmentation.backbone: expected one of .*efficientnet_lite2"),
     (lambda d: d["perception"]["segmentation"].update(backbone="efficientnet_lite0", train_height=72, train_width=96), "perception.segmentation.train_height: DeepLabV3 on efficientnet_lite0 needs .* multiples of 32"),
     (lambda d: d["perception"]["depth"][1].update(backbone="efficientnet_b0"), "perception.depth\\[1\\].backbone: expected one of"),
+    (lambda d: d["graphs"].update(projection="pinhole"), "graphs.projection: expected one of monograph, exact, got 'pinhole'"),
+    (lambda d: d["graphs"].update(camera="exact"), "graphs.camera: unknown key"),
+    (lambda d: d["scenarios"]["s2"].update(projection="true"), "scenarios.s2.projection: expected one of monograph, exact"),
+    (lambda d: (d.update(graphs_root=".", scenarios={"s1": {"depth": "gt", "semantic": "gt", "projection": "exact"}})),
+     "scenarios.s1.projection: published graphs hold the original code's lengths"),
 ])
 def test_bad_study_names_the_key(tmp_path, change, key):
     with pytest.raises(StudyError, match=key):
@@ -165,6 +170,27 @@ def test_values_the_code_cannot_use_are_refused_when_the_study_loads(tmp_path, c
     """Each value of issue 19's list: one StudyError naming the key and what is expected, before any work."""
     with pytest.raises(StudyError, match=key):
         load_study(write(tmp_path, change))
+
+
+def test_projection_is_a_study_key_each_scenario_may_override(tmp_path):
+    """`graphs.projection` (default the paper's `monograph`), a scenario's own `projection`, and both in the graph
+    stage's key (and so in every cell's)."""
+    from monolib.graphs import stage as scenegraphs
+
+    for name in ("quick", "paper", "ablations", "smoke", "published"):
+        assert load_study(name, check_files=False).graphs.projection == "monograph", name
+    ablations = load_study("ablations", check_files=False)
+    assert ablations.projection("s1_exact") == "exact" and ablations.projection("s1") == "monograph"
+
+    def exact(d):
+        d["graphs"]["projection"] = "exact"
+        d["scenarios"]["s2"]["projection"] = "monograph"
+    study = load_study(write(tmp_path, exact))
+    assert study.projection("s1") == "exact" and study.projection("s2") == "monograph"
+    key = scenegraphs.scenario_key(study, "s1")
+    study.graphs.projection = "monograph"
+    assert scenegraphs.scenario_key(study, "s1") != key
+    assert load_study(write(tmp_path, lambda d: d.pop("graphs"))).graphs.projection == "monograph"
 
 
 def test_close_thresholds_get_folders_of_their_own(tmp_path):

@@ -391,7 +391,8 @@ def test_same_resample_indices_for_every_group():
 # ---- a richer fake study: seeds, variants, a scaled-depth scenario, dim settings ----------------------------------
 
 P_HIT = {("gcn", "s1", 1.0): 0.9, ("gcn", "s1", math.inf): 0.15, ("gcn", "s1x2", 1.0): 0.5,
-         ("gcn", "s1x2", math.inf): 0.15, ("gcn_gine", "s1", 1.0): 0.9, ("gcn_bad", "s1", 1.0): 0.2,
+         ("gcn", "s1x2", math.inf): 0.15, ("gcn", "s1_exact", 1.0): 0.3, ("gcn", "s1_exact", math.inf): 0.15,
+         ("gcn_gine", "s1", 1.0): 0.9, ("gcn_bad", "s1", 1.0): 0.2,
          ("color_hist", "rgb", math.inf): 0.5}
 DIM = set(SETTINGS[:2])
 
@@ -422,7 +423,8 @@ def rich(tmp_path, monkeypatch):
     spec = params.Study(
         name="rich", seeds=[0, 1, 2], thresholds=[1.0, math.inf], methods=["gcn", "color_hist"],
         scenarios={"s1": params.Scenario(label="GT depth, GT semantics"),
-                   "s1x2": params.Scenario(label="GT depth x 2", depth_scale=2.0, in_tables=False)},
+                   "s1x2": params.Scenario(label="GT depth x 2", depth_scale=2.0, in_tables=False),
+                 "s1_exact": params.Scenario(label="GT, exact camera", projection="exact", in_tables=False)},
         variants={"gcn_gine": params.Variant(gcn={"conv": "gine"}, scenarios=["s1"], thresholds=[1.0],
                                              description="GINEConv reading edge lengths"),
                   "gcn_bad": params.Variant(gcn={"layers": 1}, scenarios=["s1"], thresholds=[1.0],
@@ -486,9 +488,21 @@ def test_rich_report_tables_ablation_light_depth(rich, capsys):
     assert set(light["method"]) == {"gcn", "color_hist"} and "s1x2" not in set(light["scenario"])
 
     depth = pd.read_csv(written["depth_scale"])
-    assert set(zip(depth["scenario"], depth["depth_scale"])) == {("s1", 1.0), ("s1x2", 2.0)}
+    assert set(zip(depth["scenario"], depth["depth_scale"])) == {("s1", 1.0), ("s1x2", 2.0)}  # one camera only
     x2 = depth[(depth.scenario == "s1x2") & (depth.threshold == 1.0)].iloc[0]
     assert x2["diff_vs_scale1"] < 0 and np.isfinite(x2["diff_lo"])
+
+    # the two cameras: s1 (the study's monograph) against its exact twin, threshold by threshold, paired
+    assert "in the `monograph` camera" in md and "s1_exact" not in md
+    cams = pd.read_csv(written["projection_csv"])
+    assert list(cams.columns) == statistics.PROJECTION_COLUMNS
+    assert set(zip(cams["method"], cams["scenario"], cams["pair"], cams["threshold"])) == {
+        ("gcn", "s1", "s1_exact", 1.0), ("gcn", "s1", "s1_exact", math.inf)}
+    one = cams[cams.threshold == 1.0].iloc[0]
+    assert one["projection"] == "monograph" and one["pair_projection"] == "exact"
+    assert one["diff"] == pytest.approx(one["pair_mean"] - one["mean"], abs=1e-6)
+    assert one["diff"] < -30 and one["significant"] and one["diff_lo"] <= one["diff"] <= one["diff_hi"]
+    assert "| `gcn` | 1 |" in written["projection_md"].read_text()
 
 
 def test_rich_report_is_deterministic(rich):

@@ -3,6 +3,19 @@
 A frame becomes one node per NYU40 label present: position = per-axis median of the label's 3D points (camera
 frame, metres), features = [NYU40 id, median R, G, B] (colour in 0..1). Two nodes closer than the threshold are
 joined in both directions, with the length as edge attribute. Everything here is vectorised over pixels.
+
+Two back-projections (`PROJECTIONS`, the study key `graphs.projection`):
+
+- ``exact``: each scene's own camera (`Camera.rays`, Hypersim's `M_cam_from_uv`, tilt-shift included) with planar
+  depth: true metres, x right, y up, z backward.
+- ``monograph``: the original Monograph code's (`GenerateSceneGraph.py` and `config.py` of
+  rupalsaxena/Monograph-Image-Retrieval, shared/docs/real-hypersim-statistics.md "Geometry"): its own pinhole camera
+  of 1024x768, f_w = 577.35 and f_h = 433.01 px (`MONOGRAPH_F_W`, `MONOGRAPH_F_H`), scaled to the frame's size
+  (f times W / 1024 and H / 768), principal point (W // 2, H // 2), and the Euclidean distance `depth_meters` used
+  as z: ``x = (j - W // 2) z / f_w``, ``y = (i - H // 2) z / f_h`` for pixel (row i, column j), axes as the
+  original's (x right, y down, z forward). Its lengths come out 1.5-2 times the true ones; they are the space in
+  which the paper's thresholds and the published graphs' lengths were measured. Planar depth (every depth source
+  here) is turned back into the Euclidean distance with the scene's own camera first.
 """
 from __future__ import annotations
 
@@ -13,8 +26,33 @@ import torch
 from torch_geometric.data import Data
 
 from monolib.data.hypersim import Camera
+from monolib.params import PROJECTIONS
 
 NODE_FEATURES = 4  # NYU40 id, median R, G, B
+# the original code's camera (config.py): fov_x = 1.0471975803375244, fov_y = 2 atan(H tan(fov_x / 2) / W),
+# f_h = 1000 tan(fov_y / 2), f_w = f_h W / H, at its fixed 1024x768
+MONOGRAPH_FOV_X = 1.0471975803375244
+MONOGRAPH_WIDTH, MONOGRAPH_HEIGHT = 1024, 768
+MONOGRAPH_F_H = 1000.0 * math.tan(math.atan(MONOGRAPH_HEIGHT * math.tan(MONOGRAPH_FOV_X / 2) / MONOGRAPH_WIDTH))
+MONOGRAPH_F_W = MONOGRAPH_F_H * MONOGRAPH_WIDTH / MONOGRAPH_HEIGHT
+
+
+def monograph_rays(height: int, width: int) -> np.ndarray:
+    """(H, W, 3) float64 multipliers of the original code's back-projection: point = ray * z, z the Euclidean
+    distance (``((j - W // 2) / f_w, (i - H // 2) / f_h, 1)``, f of the 1024x768 camera scaled to W x H)."""
+    f_w = MONOGRAPH_F_W * width / MONOGRAPH_WIDTH
+    f_h = MONOGRAPH_F_H * height / MONOGRAPH_HEIGHT
+    out = np.empty((height, width, 3), np.float64)
+    out[..., 0] = ((np.arange(width) - width // 2) / f_w)[None, :]
+    out[..., 1] = ((np.arange(height) - height // 2) / f_h)[:, None]
+    out[..., 2] = 1.0
+    return out
+
+
+def check_projection(projection: str) -> str:
+    if projection not in PROJECTIONS:
+        raise ValueError(f"projection: expected one of {', '.join(PROJECTIONS)}, got {projection!r}")
+    return projection
 
 
 def grouped_median(labels: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -65,8 +103,9 @@ def grouped_median_u8(labels: np.ndarray, channels: np.ndarray, uniq: np.ndarray
 
 
 def frame_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray,
-                camera: Camera) -> tuple[np.ndarray, np.ndarray, int]:
+                camera: Camera, projection: str = "exact") -> tuple[np.ndarray, np.ndarray, int]:
     """`scene_nodes` and the labelled pixels it left out for their depth (NaN, inf or <= 0), from one mask."""
+    check_projection(projection)
     depth = np.asarray(depth, dtype=np.float32)
     semantic = np.asarray(semantic)
     if depth.shape != semantic.shape:
@@ -76,22 +115,32 @@ def frame_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray,
     labelled = (semantic >= 1).reshape(-1)
     with np.errstate(invalid="ignore"):
         valid = labelled & (np.isfinite(depth) & (depth > 0)).reshape(-1)
-    x, pos = _nodes(rgb, depth, semantic, camera, valid)
+    x, pos = _nodes(rgb, depth, semantic, camera, valid, projection)
     return x, pos, int(np.count_nonzero(labelled)) - int(np.count_nonzero(valid))
 
 
-def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Nodes of a frame: (x (L, 4) float32 [id, R, G, B in 0..1], pos (L, 3) float32 metres, camera frame).
+def scene_nodes(rgb: np.ndarray | None, depth: np.ndarray, semantic: np.ndarray, camera: Camera,
+                projection: str = "exact") -> tuple[np.ndarray, np.ndarray]:
+    """Nodes of a frame: (x (L, 4) float32 [id, R, G, B in 0..1], pos (L, 3) float32 metres in `projection`).
 
-    Pixels with NaN, infinite or non-positive depth or label -1 are left out; no valid pixel gives L = 0.
-    Positions are per-axis medians by one sort (`grouped_median`), uint8 colours exact medians from histograms.
+    `depth`: planar metres (the scene's `camera`). Pixels with NaN, infinite or non-positive depth or label -1 are
+    left out; no valid pixel gives L = 0. Positions are per-axis medians by one sort (`grouped_median`), uint8
+    colours exact medians from histograms.
     """
-    return frame_nodes(rgb, depth, semantic, camera)[:2]
+    return frame_nodes(rgb, depth, semantic, camera, projection)[:2]
 
 
-def _nodes(rgb, depth: np.ndarray, semantic: np.ndarray, camera: Camera, valid: np.ndarray):
+def _nodes(rgb, depth: np.ndarray, semantic: np.ndarray, camera: Camera, valid: np.ndarray,
+           projection: str = "exact"):
     """The nodes of the pixels of `valid` (flat bool mask): `scene_nodes`."""
-    rays = camera.rays(*depth.shape).reshape(-1, 3)
+    if projection == "monograph":  # z = the Euclidean distance (from planar, with the scene's own rays)
+        exact = camera.rays(*depth.shape)
+        depth = depth.astype(np.float64) * (np.linalg.norm(exact, axis=-1) / -exact[..., 2])
+        rays = monograph_rays(*depth.shape).reshape(-1, 3)
+        scale = lambda d, r: d  # noqa: E731  (z = distance: no division by the ray's z)
+    else:
+        rays = camera.rays(*depth.shape).reshape(-1, 3)
+        scale = lambda d, r: d / -r[:, 2]  # noqa: E731
     labels, d = semantic.reshape(-1), depth.reshape(-1)
     colours = None if rgb is None else rgb.reshape(-1, 3)
     if not valid.all():  # index only when needed: predicted frames are usually fully valid
@@ -102,7 +151,7 @@ def _nodes(rgb, depth: np.ndarray, semantic: np.ndarray, camera: Camera, valid: 
         colours = None if colours is None else colours[idx]
     xyz = np.empty((3, len(d)), np.float64)  # C-ordered rows: the sort in grouped_median runs along each row
     xyz[:] = rays.T
-    xyz *= d / -rays[:, 2]
+    xyz *= scale(d, rays)
     uniq, pos = grouped_median(labels, xyz)
     if colours is None:
         colour = np.zeros((len(uniq), 3))
@@ -145,8 +194,8 @@ def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Dat
     return out
 
 
-def build_scene_graph(rgb, depth, semantic, camera: Camera, threshold: float) -> Data:
+def build_scene_graph(rgb, depth, semantic, camera: Camera, threshold: float, projection: str = "exact") -> Data:
     """The paper's scene graph of one frame: `x` = [NYU40 id, median R, G, B], `pos` = per-axis median (metres,
-    camera frame), `edge_index` both directions for every pair closer than `threshold` (inf joins all pairs),
-    `edge_attr` = lengths. A frame with no labelled pixel gives an empty graph (0 nodes)."""
-    return at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, camera)), threshold)
+    camera frame of `projection`), `edge_index` both directions for every pair closer than `threshold` (inf joins
+    all pairs), `edge_attr` = lengths. A frame with no labelled pixel gives an empty graph (0 nodes)."""
+    return at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, camera, projection)), threshold)

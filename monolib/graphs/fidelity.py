@@ -14,6 +14,25 @@ the way `shared/tools/fidelity_reference.py` computes them, draw for draw, so th
   settings with at least `MIN_COLOUR_FRAMES` frames showing the label (within); the standard deviation of the
   per-setting mean log colours, averaged over R, G, B (between); ratio = between / within.
 
+Geometry and light, like with like (the doc's sections "Geometry" and "Light"):
+
+- the frames: every `DEPTH_EVERY`-th frame of the split (`light_sample`; the training split with its validation
+  settings: the dataset's training split in its split file's order), the frames that
+  `shared/tools/depth_light_reference.py` reads, so that the two agree;
+- pixel depth: the Euclidean `depth_meters` of every valid pixel (finite, > 0) of those frames, read from the
+  files: p10, p25, median, p75, p90 and the share beyond `FAR` m, beside Hypersim's own image statistics;
+- node pairs in the original code's camera (`monolib.graphs.build`, projection ``monograph``): every pair i < j of
+  every ground-truth graph built from the pixels in that camera, whatever the study's own projection (the graph
+  stage builds them, cached, under the scenario name ``<gt>_monograph`` when the study's own camera is ``exact``):
+  p10, median, mean and p90 of the lengths, the share of pairs closer than 1, 2, 5 and 10 m, pairs per graph and
+  edges per graph at each of those thresholds (a pair counted once), beside the published real graphs'; the same
+  figures in the study's own projection when it is not ``monograph``;
+- wall and floor colour from the HDR `color.hdf5` (linear radiance): each node's median (the pixels of the label with
+  valid depth, as the node), then the colour statistics above over every setting of those frames (``HDR``), beside
+  the same of the graphs' node colours of the same frames (``node``: here the tonemapped uint8 colours, which divide
+  out each frame's brightness and scale log colour by 1/2.2) and beside real Hypersim's (whose published node
+  colours are HDR medians).
+
 The real Hypersim numbers cannot be computed here (the published files are not available); they are transcribed
 from the doc into `monolib/resources/fidelity_reference.csv`. `write(study)` puts `fidelity.csv` (long format: statistic,
 source, value) and `fidelity.md` (the doc's table, the label frequencies and the acceptance targets for the
@@ -22,6 +41,7 @@ is NaN.
 """
 from __future__ import annotations
 
+import copy
 import csv
 import io
 import math
@@ -33,7 +53,7 @@ import numpy as np
 from monolib import paths
 from monolib.data import labels, stage as dataset
 from monolib.graphs import stage as scenegraphs
-from monolib.io import write_text
+from monolib.io import DataFileError, read_h5, write_text
 from monolib.params import Study, StudyError
 
 MIN_FRAMES = 10          # a setting is used when the split holds at least this many of its frames
@@ -55,6 +75,25 @@ TARGET_COLOUR_RATIO = 2.0
 TARGET_FREQUENT = ("wall", "floor", "otherprop", "chair", "lamp", "ceiling")
 TARGET_FREQUENCY = 0.30
 
+DEPTH_EVERY = 2          # pixel depth: every 2nd frame of the split (as shared/tools/depth_light_reference.py)
+MAX_DEPTH_FRAMES = 1000  # ... or fewer frames, evenly spaced, on a large split (a real download)
+MAX_DEPTH_PIXELS = 256 * 192  # a larger frame gives every k-th valid pixel, about this many (quick: all of them)
+DEPTH_QUANTILES = (("p10", 10), ("p25", 25), ("median", 50), ("p75", 75), ("p90", 90))
+FAR = 20.0               # metres: the share of pixels beyond (views through windows and openings)
+PAIR_THRESHOLDS = (1.0, 2.0, 5.0, 10.0)
+PAIR_STATS = (("p10", 10), ("median", 50), ("p90", 90))
+MONOGRAPH = "monograph"
+# the generator's acceptance targets of real depth and light (issue 25), checked on the training split: (low, high)
+TARGET_RANGES = {
+    "pixel depth, median": (4.0, 5.6), "pixel depth, p90": (10.0, math.inf),
+    f"pixel depth, share beyond {FAR:g} m": (0.02, 0.10),
+    "pair length (monograph), median": (3.6, 5.0),
+    "pairs closer than 1 m (monograph)": (0.02, 0.07), "pairs closer than 2 m (monograph)": (0.09, 0.20),
+    "pairs closer than 5 m (monograph)": (0.48, 0.72), "pairs closer than 10 m (monograph)": (0.86, 0.97),
+    "wall HDR colour sd, within settings": (0.30, math.inf), "wall HDR colour ratio": (2.0, 4.0),
+    "floor HDR colour sd, within settings": (0.30, math.inf), "floor HDR colour ratio": (2.0, 4.0),
+}
+
 
 def frequency_name(label_name: str) -> str:
     return f"label frequency, {label_name}"
@@ -63,11 +102,7 @@ def frequency_name(label_name: str) -> str:
 def split_statistics(graphs: list, pairs: int = PAIRS, seed: int = SEED) -> dict[str, float]:
     """The doc's statistics of one split's scene graphs (`Data` with `x` = [NYU40 id, R, G, B] and `setting`)."""
     nan = float("nan")
-    frames_of: dict[str, list[int]] = {}  # setting -> indices of its frames, settings in order of appearance
-    for i, g in enumerate(graphs):
-        frames_of.setdefault(str(g.setting), []).append(i)
-    settings = [s for s, frames in frames_of.items() if len(frames) >= MIN_FRAMES]
-    used = [i for s in settings for i in frames_of[s]]
+    frames_of, settings, used = used_frames([g.setting for g in graphs])
     xs = [graphs[i].x.reshape(-1, 4) for i in used]
     node_label = np.concatenate([x[:, 0].long().numpy() for x in xs] + [np.zeros(0, np.int64)])
     node_colour = np.concatenate([x[:, 1:4].float().numpy() for x in xs] + [np.zeros((0, 3), np.float32)])
@@ -122,20 +157,89 @@ def split_statistics(graphs: list, pairs: int = PAIRS, seed: int = SEED) -> dict
     stats["label-set Jaccard, across settings"] = jaccard(a_rows[: len(c_rows)], c_rows)
 
     # colour distinctiveness of walls and floors
-    setting_of_frame = np.repeat(np.arange(len(settings)), count)
+    stats.update(colour_statistics(node_label, node_colour, node_frame, np.repeat(np.arange(len(settings)), count)))
+    return stats
+
+
+def used_frames(frame_settings: list) -> tuple[dict[str, list[int]], list[str], list[int]]:
+    """``(frames of each setting, the settings used, the frames used)``: the frames (indices) of each setting in the
+    order the settings first appear, the settings with at least `MIN_FRAMES` frames, and their frames in that order."""
+    frames_of: dict[str, list[int]] = {}
+    for i, setting in enumerate(frame_settings):
+        frames_of.setdefault(str(setting), []).append(i)
+    settings = [s for s, frames in frames_of.items() if len(frames) >= MIN_FRAMES]
+    return frames_of, settings, [i for s in settings for i in frames_of[s]]
+
+
+def colour_statistics(node_label: np.ndarray, node_colour: np.ndarray, node_frame: np.ndarray,
+                      setting_of_frame: np.ndarray, kind: str = "") -> dict[str, float]:
+    """Wall and floor colour distinctiveness (``<label> <kind>colour sd, within / between settings``, ``ratio``) of
+    nodes (label, R, G, B) of frames (`node_frame`: index of the node's frame, `setting_of_frame`: that frame's
+    setting, 0..S-1); the first node of a label in a frame is its colour."""
+    nan = float("nan")
+    stats: dict[str, float] = {}
+    n_settings = int(setting_of_frame.max()) + 1 if len(setting_of_frame) else 0
     for name, label_id in COLOUR_LABELS:
         showing = np.flatnonzero(node_label == label_id)
         frames, first_node = np.unique(node_frame[showing], return_index=True)  # first node of the label per frame
         log_colour = np.log(np.maximum(node_colour[showing[first_node]], np.float32(COLOUR_FLOOR)))
-        per_setting = [log_colour[setting_of_frame[frames] == k] for k in range(len(settings))]
+        per_setting = [log_colour[setting_of_frame[frames] == k] for k in range(n_settings)]
         per_setting = [v for v in per_setting if len(v) >= MIN_COLOUR_FRAMES]
         within = float(np.mean([v.std(0).mean() for v in per_setting])) if per_setting else nan
         between = float(np.array([v.mean(0) for v in per_setting]).std(0).mean()) if len(per_setting) >= 2 else nan
         with np.errstate(divide="ignore", invalid="ignore"):  # float32 as in the reference, to the last bit
             ratio = float(np.float32(between) / np.float32(within))
-        stats[f"{name} colour sd, within settings"] = within
-        stats[f"{name} colour sd, between settings"] = between
-        stats[f"{name} colour ratio"] = ratio
+        stats[f"{name} {kind}colour sd, within settings"] = within
+        stats[f"{name} {kind}colour sd, between settings"] = between
+        stats[f"{name} {kind}colour ratio"] = ratio
+    return stats
+
+
+def pair_statistics(graphs: list, projection: str) -> dict[str, float]:
+    """Node pair lengths of graphs holding every pair (`pair_len`, as the graph stage and the published files do),
+    over every graph given (`light_sample`): ``pair length (<projection>), p10 / median / mean / p90``,
+    ``pairs closer than <t> m``, ``pairs per graph`` and ``edges per graph at <t> m`` (a pair counted once)."""
+    lengths = np.concatenate([g.pair_len.double().numpy() for g in graphs] + [np.zeros(0)])
+    n = len(graphs)
+    tag = f"({projection})"
+    nan = float("nan")
+    stats = {f"pairs per graph {tag}": len(lengths) / n if n else nan}
+    for name, q in PAIR_STATS:
+        stats[f"pair length {tag}, {name}"] = float(np.percentile(lengths, q)) if len(lengths) else nan
+    stats[f"pair length {tag}, mean"] = float(lengths.mean()) if len(lengths) else nan
+    for t in PAIR_THRESHOLDS:
+        closer = int(np.count_nonzero(lengths < t))  # an edge: a pair closer than the threshold (build.pair_mask)
+        stats[f"pairs closer than {t:g} m {tag}"] = closer / len(lengths) if len(lengths) else nan
+        stats[f"edges per graph at {t:g} m {tag}"] = closer / n if n else nan
+    return stats
+
+
+def light_sample(graphs: list) -> list:
+    """The frames of a split that the geometry and light statistics read: every `DEPTH_EVERY`-th (or fewer, evenly
+    spaced, so that at most `MAX_DEPTH_FRAMES`), in order. For the training split pass its training and validation
+    settings together (`graphs["train"] + graphs["val"]`, the dataset's training split in the order of its split
+    file): the frames `shared/tools/depth_light_reference.py` reads."""
+    return graphs[:: max(DEPTH_EVERY, -(-len(graphs) // MAX_DEPTH_FRAMES))]
+
+
+def node_colour_statistics(graphs: list, kind: str) -> dict[str, float]:
+    """`colour_statistics` of the graphs' own node colours (x = [label, R, G, B]), every setting of `graphs`."""
+    order = {s: k for k, s in enumerate(dict.fromkeys(str(g.setting) for g in graphs))}
+    xs = [g.x.reshape(-1, 4).double().numpy() for g in graphs] + [np.zeros((0, 4))]
+    flat = np.concatenate(xs)
+    return colour_statistics(flat[:, 0].astype(np.int64), flat[:, 1:4], np.repeat(np.arange(len(graphs)),
+                             [len(x) for x in xs[:-1]]), np.array([order[str(g.setting)] for g in graphs], np.int64),
+                             kind)
+
+
+def depth_statistics(depths: np.ndarray) -> dict[str, float]:
+    """``pixel depth, p10 / p25 / median / p75 / p90`` (metres) and ``share beyond FAR m`` of Euclidean depths."""
+    depths = np.asarray(depths, np.float64)
+    nan = float("nan")
+    stats = {f"pixel depth, {name}": float(np.percentile(depths, q)) if len(depths) else nan
+             for name, q in DEPTH_QUANTILES}
+    stats[f"pixel depth, share beyond {FAR:g} m"] = float((depths > FAR).mean()) if len(depths) else nan
+    stats["pixel depth, pixels"] = float(len(depths))
     return stats
 
 
@@ -147,17 +251,97 @@ def ground_truth_scenario(study: Study) -> str | None:
     return None
 
 
+def projected_graphs(study: Study, scenario: str, projection: str) -> dict[str, list]:
+    """The graphs of `scenario` built from the pixels in `projection` (`monolib.graphs.build`): the scenario's own
+    cache when that is its camera, else the graph stage's build of the same sources in that camera, cached as
+    ``graphs/<scenario>_<projection>-<key>.pt``."""
+    if study.graphs_root or study.projection(scenario) == projection:
+        return scenegraphs.load(study, scenario)
+    other, name = copy.deepcopy(study), f"{scenario}_{projection}"
+    sc = copy.deepcopy(study.scenarios[scenario])
+    sc.projection = projection
+    other.scenarios = {name: sc}
+    return scenegraphs.load(other, name)
+
+
+def _frame_pixels(args) -> tuple:
+    """Worker: ``(Euclidean depth of the valid pixels or None, HDR nodes (n, 4) [label, R, G, B] of the colour
+    labels, error or None)`` of one frame; a node is the per-channel median of `color.hdf5` over the label's pixels
+    with valid depth (finite, > 0), as a graph node; a missing or unreadable file gives no pixels and its error."""
+    study, key, with_depth = args
+    try:
+        f = scenegraphs.frame_of(study, key)
+        depth, semantic = f.depth_meters, f.semantic
+        if semantic is None:
+            raise DataFileError(f"{f.files['semantic']}: file not found")
+        colour = read_h5(f.files["color"])
+        if colour.shape[:2] != depth.shape or semantic.shape != depth.shape:
+            raise DataFileError(f"{f.files['color']}: colour {colour.shape}, depth {depth.shape} and semantic "
+                                f"{semantic.shape} differ in size")
+    except (DataFileError, FileNotFoundError) as exc:
+        return None, np.zeros((0, 4)), str(exc)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(depth) & (depth > 0)
+    values = None
+    if with_depth:
+        values = depth[valid]
+        values = values[:: max(1, -(-len(values) // MAX_DEPTH_PIXELS))]  # every k-th of a large frame's pixels
+    nodes = []
+    for _, label_id in COLOUR_LABELS:
+        mask = valid & (semantic == label_id)
+        if mask.any():
+            nodes.append([label_id, *np.median(colour[mask].astype(np.float64), axis=0)])
+    return values, np.array(nodes, np.float64).reshape(-1, 4), None
+
+
+def frame_statistics(study: Study, graphs: list, progress: bool = False) -> dict[str, float]:
+    """Pixel depth (`depth_statistics`) and HDR wall and floor colour (`colour_statistics` of ``HDR `` nodes, every
+    setting) of the frames of `graphs` (`light_sample`), read from the dataset's files (`depth_meters`,
+    `semantic`, `color.hdf5`)."""
+    jobs = [(study, str(g.frame), True) for g in graphs]
+    read = scenegraphs.map_frames(_frame_pixels, jobs, study.dataset.workers, "fidelity: depth and HDR colour",
+                                  progress)
+    depths = [values for values, _, _ in read if values is not None]
+    stats = depth_statistics(np.concatenate(depths) if depths else np.zeros(0))
+    stats["pixel depth, frames"] = float(len(depths))
+    stats["frames unreadable"] = float(sum(error is not None for _, _, error in read))
+    order = {s: k for k, s in enumerate(dict.fromkeys(str(g.setting) for g in graphs))}
+    nodes = [nodes for _, nodes, _ in read]
+    flat = np.concatenate(nodes + [np.zeros((0, 4))])
+    stats.update(colour_statistics(flat[:, 0].astype(np.int64), flat[:, 1:4],
+                                   np.repeat(np.arange(len(graphs)), [len(n) for n in nodes]),
+                                   np.array([order[str(g.setting)] for g in graphs], np.int64), kind="HDR "))
+    return stats
+
+
 def study_statistics(study: Study) -> dict[str, dict[str, float]]:
     """{'this study, train': stats, 'this study, test': stats} of the study's ground-truth graphs (the dataset and
-    the graphs built when missing)."""
+    the graphs built when missing): the graph statistics (`split_statistics`), the node pairs in the original code's
+    camera and, when it differs, in the study's own (`pair_statistics`), and the pixel depth and HDR colour read from
+    the files (`frame_statistics`; not for published graphs, which come without their frames)."""
     scenario = ground_truth_scenario(study)
     if scenario is None:
         raise StudyError(f"{study.path}: no scenario with depth: gt and semantic: gt, "
                          "so no ground-truth graphs to measure")
-    if not study.graphs_root and not scenegraphs.graphs_path(study, scenario).exists():
+    if not study.graphs_root:
         dataset.ensure_dataset(study)  # a synthetic study renders its mini-Hypersim first (cached)
+    own = study.projection(scenario)
     graphs = scenegraphs.load(study, scenario)
-    return {f"this study, {split}": split_statistics(graphs[split]) for split in SPLITS}
+    monograph = graphs if own == MONOGRAPH else projected_graphs(study, scenario, MONOGRAPH)
+    whole = lambda g, split: g["train"] + g["val"] if split == "train" else g[split]  # noqa: E731
+    out = {}
+    for split in SPLITS:
+        stats = split_statistics(graphs[split])
+        sample = light_sample(whole(graphs, split))
+        stats.update(pair_statistics(light_sample(whole(monograph, split)), MONOGRAPH))
+        if own != MONOGRAPH:
+            stats.update(pair_statistics(sample, own))
+        stats.update(node_colour_statistics(sample, "node "))
+        if not study.graphs_root:
+            stats.update(frame_statistics(study, sample))
+        stats["geometry and light, frames"] = float(len(sample))
+        out[f"this study, {split}"] = stats
+    return out
 
 
 def read_reference(path: str | Path = REFERENCE_CSV) -> dict[str, dict[str, float]]:
@@ -181,16 +365,42 @@ def _count(value: float) -> str:
     return f"{value:.0f}" if not math.isnan(value) and float(value).is_integer() else _number(value, 1)
 
 
+def _cells(stats: dict[str, float], names: list[str], digits: int) -> str:
+    """'a / b / c' of the statistics `names` ('NaN' where not measured)."""
+    return " / ".join(_number(stats.get(name, float("nan")), digits) for name in names)
+
+
+def _colour_cell(stats: dict[str, float], label: str, kind: str = "") -> str:
+    """'within / between (ratio)' of a label's colour statistics of `kind` ('' graph node colours, 'HDR ')."""
+    within, between = (_number(stats.get(f"{label} {kind}colour sd, {k} settings", float("nan")), 2)
+                       for k in ("within", "between"))
+    return f"{within} / {between} ({_number(stats.get(f'{label} {kind}colour ratio', float('nan')), 1)})"
+
+
 def table_rows(stats: dict[str, float]) -> list[str]:
-    """The four cells of the doc's table for one source (missing statistics: NaN)."""
+    """The two cells of the scene-graph table for one source (missing statistics: NaN)."""
     get = lambda name: stats.get(name, float("nan"))
     nodes = [_number(get("nodes per graph, mean"), 1)] + [_count(get(f"nodes per graph, {s}")) for s in NODE_STATS[1:]]
     within, across = (_number(get(f"label-set Jaccard, {kind} settings"), 2) for kind in ("within", "across"))
-    cells = [" / ".join(nodes), f"{within} / {across}"]
-    for name, _ in COLOUR_LABELS:
-        within, between = (_number(get(f"{name} colour sd, {kind} settings"), 2) for kind in ("within", "between"))
-        cells.append(f"{within} / {between} ({_number(get(f'{name} colour ratio'), 1)})")
-    return cells
+    return [" / ".join(nodes), f"{within} / {across}"]
+
+
+def geometry_rows(projections: list[str]) -> list[tuple[str, callable]]:
+    """(row name, cell of a source's statistics) of the geometry table: pixel depth, then the node pairs in each
+    camera of `projections`."""
+    rows = [("pixel depth p10 / p25 / median / p75 / p90 (m), Euclidean",
+             lambda st: _cells(st, [f"pixel depth, {n}" for n, _ in DEPTH_QUANTILES], 2)),
+            (f"share of pixels beyond {FAR:g} m", lambda st: _cells(st, [f"pixel depth, share beyond {FAR:g} m"], 3))]
+    for camera in projections:
+        tag = f"({camera})"
+        rows += [(f"node pairs per graph, {camera} camera", lambda st, t=tag: _cells(st, [f"pairs per graph {t}"], 1)),
+                 (f"pair length p10 / median / mean / p90 (m), {camera} camera",
+                  lambda st, t=tag: _cells(st, [f"pair length {t}, {n}" for n in ("p10", "median", "mean", "p90")], 2)),
+                 (f"share of pairs closer than {' / '.join(f'{x:g}' for x in PAIR_THRESHOLDS)} m, {camera} camera",
+                  lambda st, t=tag: _cells(st, [f"pairs closer than {x:g} m {t}" for x in PAIR_THRESHOLDS], 3)),
+                 (f"edges per graph at {' / '.join(f'{x:g}' for x in PAIR_THRESHOLDS)} m, {camera} camera",
+                  lambda st, t=tag: _cells(st, [f"edges per graph at {x:g} m {t}" for x in PAIR_THRESHOLDS], 2))]
+    return rows
 
 
 def frequency_line(stats: dict[str, float], top: int = TOP_LABELS) -> str:
@@ -202,7 +412,8 @@ def frequency_line(stats: dict[str, float], top: int = TOP_LABELS) -> str:
 
 
 def acceptance(train: dict[str, float]) -> list[tuple[str, bool]]:
-    """The generator's acceptance targets on the training split: [(text with the measured value, passed)]."""
+    """The generator's acceptance targets on the training split: [(text with the measured value, passed)]: the
+    scene-graph targets (issue 9), then those of real depth and light (`TARGET_RANGES`)."""
     nan = float("nan")
     nodes = train.get("nodes per graph, mean", nan)
     within = train.get("label-set Jaccard, within settings", nan)
@@ -213,37 +424,75 @@ def acceptance(train: dict[str, float]) -> list[tuple[str, bool]]:
            (f"Jaccard across <= {TARGET_JACCARD_ACROSS:.2f}: {_number(across, 2)}", across <= TARGET_JACCARD_ACROSS)]
     for name, _ in COLOUR_LABELS:
         ratio = train.get(f"{name} colour ratio", nan)
-        out.append((f"{name} colour ratio >= {TARGET_COLOUR_RATIO:.1f}: {_number(ratio, 1)}",
+        out.append((f"{name} colour ratio (graph node colours) >= {TARGET_COLOUR_RATIO:.1f}: {_number(ratio, 1)}",
                     ratio >= TARGET_COLOUR_RATIO))
     for name in TARGET_FREQUENT:
         share = train.get(frequency_name(name), nan)
         out.append((f"{name} in >= {TARGET_FREQUENCY:.0%} of graphs: {_number(share, 2)}", share >= TARGET_FREQUENCY))
+    for name, (low, high) in TARGET_RANGES.items():
+        value = train.get(name, nan)
+        want = f">= {low:g}" if math.isinf(high) else f"in [{low:g}, {high:g}]"
+        out.append((f"{name} {want}: {_number(value, 3 if abs(high) <= 1 else 2)}", low <= value <= high))
     return out  # NaN compares False: not measurable = not passed
 
 
 def markdown(study_name: str, sources: dict[str, dict[str, float]]) -> str:
-    """fidelity.md: the doc's reference table with this study's columns, label frequencies, acceptance targets."""
+    """fidelity.md: the scene-graph table, the geometry table (pixel depth, node pairs in the original code's camera
+    and in the study's own when the statistics hold another), the light table (HDR against the graphs' node
+    colours), label frequencies and the acceptance targets, each source beside real Hypersim."""
     header = ["statistic"] + [f"{src} ({_number(stats.get('settings', float('nan')), 0)} settings)"
                               for src, stats in sources.items()]
-    names = ["nodes per graph: mean / median / p10 / p90", "label-set Jaccard within / across settings",
-             "wall colour sd within / between settings (ratio)", "floor colour sd within / between settings (ratio)"]
-    columns = [table_rows(stats) for stats in sources.values()]
+
+    def table(rows: list[tuple[str, callable]]) -> list[str]:
+        lines = ["| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
+        return lines + ["| " + " | ".join([name] + [cell(stats) for stats in sources.values()]) + " |"
+                        for name, cell in rows]
+
+    graph_rows = [("nodes per graph: mean / median / p10 / p90", lambda st: table_rows(st)[0]),
+                  ("label-set Jaccard within / across settings", lambda st: table_rows(st)[1])]
+    graph_rows += [(f"{label} colour sd within / between settings (ratio), node colours",
+                    lambda st, lab=label: _colour_cell(st, lab)) for label, _ in COLOUR_LABELS]
+    others = sorted({key[len("pairs per graph ("):-1] for stats in sources.values() for key in stats
+                     if key.startswith("pairs per graph (")} - {MONOGRAPH})
+    projections, projection = [MONOGRAPH] + others, (others[0] if others else MONOGRAPH)
+    light_rows = [(f"{label} colour sd within / between settings (ratio), {what}",
+                   lambda st, lab=label, k=kind: _colour_cell(st, lab, k))
+                  for label, _ in COLOUR_LABELS
+                  for what, kind in (("HDR color.hdf5 medians", "HDR "), ("the graphs' node colours", "node "))]
+    frames = {src: _number(st.get("geometry and light, frames", float("nan")), 0) for src, st in sources.items()
+              if src.startswith("this study")}
     lines = [f"# Data fidelity of `{study_name}`: ground-truth scene graphs against real Hypersim", "",
              f"Definitions: shared/docs/real-hypersim-statistics.md (settings with >= {MIN_FRAMES} frames; "
              f"{PAIRS} seeded pairs; colour sd in log space over settings with >= {MIN_COLOUR_FRAMES} frames showing "
-             "the label). Real Hypersim: transcribed from that doc (monolib/resources/fidelity_reference.csv).", "",
-             "| " + " | ".join(header) + " |", "|" + " --- |" * len(header)]
-    for k, name in enumerate(names):
-        lines.append("| " + " | ".join([name] + [col[k] for col in columns]) + " |")
-    lines.append("")
+             "the label). Real Hypersim: transcribed from that doc (monolib/resources/fidelity_reference.csv). "
+             "This table is computed as shared/tools/fidelity_reference.py computes it, on the ground-truth graphs "
+             "of each split (node colours: the graphs' own, here tonemapped; real Hypersim's: HDR medians).", ""]
+    lines += table(graph_rows) + [""]
+    lines += [f"**Geometry.** On every {DEPTH_EVERY}nd frame of each split (the training split with its validation "
+              f"settings: the frames shared/tools/depth_light_reference.py reads; "
+              + ", ".join(f"{src}: {n} frames" for src, n in frames.items()) + "). Pixel depth: the Euclidean "
+              "depth_meters of every valid pixel, read from the files (real Hypersim: its depth histograms over all "
+              "public images, not per split). Node pairs: every pair i < j of every ground-truth graph in the "
+              "original Monograph code's camera (`monograph`: f 577.35 / 433.01 px at 1024x768 scaled to the frame, "
+              "Euclidean depth as z, nodes built from the pixels as the original did), the camera of the published "
+              "real graphs' lengths and of the paper's thresholds"
+              + (f"; and in this study's own camera (`{projection}`)" if projection != MONOGRAPH else "")
+              + ". An edge at a threshold: a pair closer than it, counted once.", ""]
+    lines += table(geometry_rows(projections)) + [""]
+    lines += ["**Light.** On the same frames: wall and floor colour distinctiveness from each node's median of the "
+              "HDR color.hdf5 (linear radiance, as the published graphs hold it), beside the same statistics of the "
+              "graphs' node colours of those frames (here Hypersim's tonemap: it divides out each frame's brightness "
+              "and scales log colour by 1/2.2, so its spread is not comparable with HDR). Real Hypersim's node "
+              "colours are HDR medians: its rows are one measurement.", ""]
+    lines += table(light_rows) + [""]
     for src, stats in sources.items():
         if any(key.startswith("label frequency, ") for key in stats):
             lines += [f"Label frequency, {src} (share of graphs): {frequency_line(stats)}.", ""]
     train = sources.get("this study, train", {})
-    marks = [f"{text} {'pass' if ok else 'FAIL'}" for text, ok in acceptance(train)]
-    passed = sum(ok for _, ok in acceptance(train))
+    marks = acceptance(train)
+    passed = sum(ok for _, ok in marks)
     lines += [f"Acceptance targets for the generator (this study, train; {passed} of {len(marks)} pass): "
-              + "; ".join(marks) + ".", ""]
+              + "; ".join(f"{text} {'pass' if ok else 'FAIL'}" for text, ok in marks) + ".", ""]
     return "\n".join(lines)
 
 

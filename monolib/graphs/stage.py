@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Optional
 
@@ -41,9 +42,9 @@ def scenario_keys(study: Study, dataset_key: Optional[str] = None) -> dict[str, 
 def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
                  model_keys: Optional[dict[str, str]] = None) -> str:
     """Cache key of a scenario's graphs: the data stage's key, the frame selection, the two sources' model keys
-    (the perception stage's), the depth scale and the version of the graph code and libraries
-    (`monolib.versions`). `dataset_key`, `model_keys`: the upstream stages' keys, when the caller holds them
-    (`scenario_keys`); computed here otherwise."""
+    (the perception stage's), the depth scale, the back-projection (`Study.projection`) and the version of the
+    graph code and libraries (`monolib.versions`). `dataset_key`, `model_keys`: the upstream stages' keys, when the
+    caller holds them (`scenario_keys`); computed here otherwise."""
     sc = study.scenarios[scenario]
     data_key = dataset_key if dataset_key is not None else dataset.dataset_key(study)
     models = model_keys or {}
@@ -55,7 +56,8 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
                    "frames": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
                               "frames": pr.frames},
                    "val": study.gcn.val_settings, "sources": sources, "depth_scale": sc.depth_scale,
-                   "code": versions.code_version("graphs"), "libraries": versions.library_versions("graphs")})
+                   "projection": study.projection(scenario), "code": versions.code_version("graphs"),
+                   "libraries": versions.library_versions("graphs")})
 
 
 def published_fingerprint(study: Study) -> Optional[str]:
@@ -74,14 +76,31 @@ def graphs_path(study: Study, scenario: str, key: Optional[str] = None) -> Path:
 _OPEN: dict = {}
 
 
+def frame_of(study: Study, key: str):
+    """The frame `key` of the study's dataset, from one index per process (the workers of `map_frames`)."""
+    root = str(study.dataset_root)
+    if root not in _OPEN:  # one index per worker process, not one per frame
+        _OPEN[root] = dataset.open_dataset(study)
+    return _OPEN[root].frame_by_key(key)
+
+
+def map_frames(work, jobs: list, workers: int, desc: str, progress: bool = True) -> list:
+    """``[work(job) for job in jobs]`` in `workers` forked processes (at most the CPUs), in order, with progress."""
+    workers = max(1, min(workers, os.cpu_count() or 1))
+    if workers > 1:
+        import multiprocessing as mp
+
+        with mp.get_context("fork").Pool(workers) as pool:
+            return list(tqdm(pool.imap(work, jobs, chunksize=8), total=len(jobs), desc=desc, disable=not progress,
+                             leave=False))
+    return [work(j) for j in tqdm(jobs, desc=desc, disable=not progress, leave=False)]
+
+
 def _frame_nodes(args) -> list[tuple]:
     """Worker: per scenario, the nodes of one frame ``(x, pos, dropped pixels[, error])``, reading every source
     once; `dropped pixels`: labelled pixels left out for their depth (NaN, inf, <= 0)."""
     study, scenarios, key = args
-    root = str(study.dataset_root)
-    if root not in _OPEN:  # one index per worker process, not one per frame
-        _OPEN[root] = dataset.open_dataset(study)
-    f = _OPEN[root].frame_by_key(key)
+    f = frame_of(study, key)
     cache: dict = {}
 
     def source(kind: str, name: str):
@@ -96,7 +115,7 @@ def _frame_nodes(args) -> list[tuple]:
         try:
             depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
             semantic = source("semantic", sc.semantic)
-            out.append(frame_nodes(f.rgb, depth, semantic, f.camera))  # (x, pos, labelled pixels left out)
+            out.append(frame_nodes(f.rgb, depth, semantic, f.camera, study.projection(sc_name)))  # (x, pos, left out)
         except perception.PredictionsMissing:  # a model's prediction: never an empty graph
             raise
         except (DataFileError, FileNotFoundError) as exc:  # a missing file of the download: an empty graph, counted
@@ -134,15 +153,7 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
             for name in {study.scenarios[sc].depth, study.scenarios[sc].semantic} - {"gt"}:
                 perception.check_predictions(study, name, [f for _, f in frames])
         jobs = [(study, todo, f.key) for _, f in frames]
-        workers = max(1, min(study.dataset.workers, os.cpu_count() or 1))
-        if workers > 1:
-            import multiprocessing as mp
-
-            with mp.get_context("fork").Pool(workers) as pool:
-                nodes = list(tqdm(pool.imap(_frame_nodes, jobs, chunksize=8), total=len(jobs),
-                                  desc=f"graphs {'+'.join(todo)}", disable=not progress, leave=False))
-        else:
-            nodes = [_frame_nodes(j) for j in tqdm(jobs, desc=f"graphs {'+'.join(todo)}", disable=not progress, leave=False)]
+        nodes = map_frames(_frame_nodes, jobs, study.dataset.workers, f"graphs {'+'.join(todo)}", progress)
         built = {}
         for i, sc in enumerate(todo):
             built[sc] = {split: [] for split in SPLITS}
@@ -157,17 +168,32 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
                       f"are empty graphs (counted in graph_sizes.md; first: {missing[sc][0]})", flush=True)
     seconds = time.perf_counter() - t0
     for sc in todo:
-        save_torch(out[sc], {"scenario": sc, "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds,
+        save_torch(out[sc], {"scenario": sc, "projection": study.projection(sc), "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds,
                              "dropped_pixels": dropped.get(sc)})
         n = sum(len(v) for v in built[sc].values())
         log.info("graphs: %s built, %d graphs (%d scenarios in %.1f s)", sc, n, len(todo), seconds)
     return out
 
 
+# Graphs files read in this process, by (path, inode, mtime, size): the cells a warm kernel runs one after another
+# read their scenario's file once (the grid runs a scenario's cells in a row), not once per cell. A rebuilt file is a
+# new inode (atomic rename), so it is read again. Callers never modify what they get.
+_READ: "OrderedDict[tuple, dict]" = OrderedDict()
+READ_FILES = 4
+
+
 def _read_graphs(path: Path) -> dict:
+    st = Path(path).stat()
+    token = (str(path), st.st_ino, st.st_mtime_ns, st.st_size)
+    if token in _READ:
+        _READ.move_to_end(token)
+        return _READ[token]
     data = torch.load(path, weights_only=False)
     if not isinstance(data, dict) or not isinstance(data.get("graphs"), dict) or set(data["graphs"]) != set(SPLITS):
         raise ValueError(f"expected {{'graphs': {{{', '.join(SPLITS)}}}}}")
+    _READ[token] = data
+    while len(_READ) > READ_FILES:
+        _READ.popitem(last=False)
     return data
 
 

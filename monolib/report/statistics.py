@@ -389,7 +389,8 @@ def depth_scale_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info:
     scaled = info[info["depth_scale"] != 1.0]
     r = iv[(iv["method"] == method) & (iv["metric"] == "recall") & (iv["k"] == k)]
     for (depth, semantic), grp in scaled.groupby(["depth", "semantic"], sort=False):
-        same = info[(info["depth"] == depth) & (info["semantic"] == semantic)]
+        same = info[(info["depth"] == depth) & (info["semantic"] == semantic)
+                    & (info["projection"] == grp["projection"].iloc[0])]
         ones = same[same["depth_scale"] == 1.0].sort_values("in_tables", ascending=False, kind="mergesort")
         ref = str(ones["scenario"].iloc[0]) if len(ones) else None
         members = ([ref] if ref else []) + list(grp["scenario"])
@@ -407,6 +408,47 @@ def depth_scale_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info:
                                if d is not None else (np.nan, np.nan, np.nan, False))))
     out = pd.DataFrame(rows, columns=DEPTH_COLUMNS)
     return out.sort_values(["depth", "semantic", "threshold", "depth_scale"], kind="mergesort").reset_index(drop=True)
+
+
+# ---- controlled comparisons: the two cameras of the graph stage ------------------------------------------------
+
+PROJECTION_COLUMNS = ["method", "scenario", "projection", "pair", "pair_projection", "threshold", "protocol", "metric",
+                      "k", "mean", "ci_lo", "ci_hi", "pair_mean", "pair_ci_lo", "pair_ci_hi", "diff", "diff_lo",
+                      "diff_hi", "significant", "n_seeds"]
+
+
+def projection_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame, k: int = 1,
+                     protocol: str = PAPER) -> pd.DataFrame:
+    """recall@k of the same method, sources and threshold in the two cameras of the graph stage: each scenario of
+    the tables (`info`: `monolib.report.results.scenario_info`) against every scenario with the same depth,
+    semantics and depth scale in another projection (its `pair`), at every threshold both were run, with the
+    paired difference pair - scenario (same seeds, settings and queries). Empty when the study has no such pair.
+    Columns `PROJECTION_COLUMNS`."""
+    col = f"recall@{k}"
+    qv, iv = only_protocol(with_protocol(qv), protocol), only_protocol(with_protocol(iv), protocol)
+    r = iv[(iv["metric"] == "recall") & (iv["k"] == k)]
+    rows = []
+    for _, base in info[info["in_tables"].astype(bool)].iterrows():
+        twins = info[(info["depth"] == base["depth"]) & (info["semantic"] == base["semantic"])
+                     & (info["depth_scale"] == base["depth_scale"]) & (info["projection"] != base["projection"])]
+        for _, twin in twins.iterrows():
+            sc, other = str(base["scenario"]), str(twin["scenario"])
+            mine, theirs = r[r["scenario"] == sc], r[r["scenario"] == other]
+            for (m, t), a in mine.groupby(["method", "threshold"], sort=False):
+                b = theirs[(theirs["method"] == m) & (theirs["threshold"] == t)]
+                if b.empty:
+                    continue
+                a, b = a.iloc[0], b.iloc[0]
+                d = paired_difference(rows_of(qv, m, other, t), rows_of(qv, m, sc, t), boot, [col])
+                d = d.iloc[0] if len(d) else None
+                rows.append((m, sc, str(base["projection"]), other, str(twin["projection"]), float(t), protocol,
+                             "recall", k, float(a["mean"]), float(a["ci_lo"]), float(a["ci_hi"]), float(b["mean"]),
+                             float(b["ci_lo"]), float(b["ci_hi"]),
+                             *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
+                               if d is not None else (np.nan, np.nan, np.nan, False)),
+                             int(min(a["n_seeds"], b["n_seeds"]))))
+    out = pd.DataFrame(rows, columns=PROJECTION_COLUMNS)
+    return out.sort_values(["scenario", "method", "threshold"], kind="mergesort").reset_index(drop=True)
 
 
 # ---- controlled comparisons: the two protocols side by side ----------------------------------------------------

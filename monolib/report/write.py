@@ -65,7 +65,9 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     - ``recall_by_light.png`` + ``light.csv`` when the dataset records dim settings (``monolib_synth.json``;
       ``paper`` protocol);
     - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``
-      (``paper`` protocol).
+      (``paper`` protocol);
+    - ``projection.{md,csv}`` when a scenario of the tables has a twin in the other camera of the graph stage
+      (`monolib.report.statistics.projection_table`, ``paper`` protocol).
 
     `study_name` is a name or a loaded `monolib.params.Study`; `study` (default: ``params/<name>.yaml`` when it
     loads) gives variant descriptions, scenario information and the dataset folder. Labels default to the
@@ -119,8 +121,11 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     info = results.scenario_info(study_name, study)
     hidden = set(info.loc[~info["in_tables"].astype(bool), "scenario"])
     in_tables = numbers[~numbers["scenario"].isin(hidden)]
+    shown = set(in_tables["scenario"])
+    cameras = tables.camera_note({str(r.scenario): str(r.projection) for r in info.itertuples()
+                                  if r.in_tables and r.scenario in shown})
     for p in protos:
-        note = tables.protocol_note(p, study.protocol if study is not None else None)
+        note = (tables.protocol_note(p, study.protocol if study is not None else None) + " " + cameras).strip()
         written.update(tables.write_tables(in_tables, out, labels, iv_all, tests, n_boot, protocol=p, note=note))
     written["recall_vs_threshold"] = figures.fig_recall_vs_threshold(in_tables, out / "recall_vs_threshold.png",
                                                                      method, scenario_labels=labels, intervals=iv_all)
@@ -145,6 +150,12 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
         io.write_text(out / "encoder_ablation.csv", tables.csv_text(ablation))
         written["encoder_ablation_md"] = out / "encoder_ablation.md"
         written["encoder_ablation_csv"] = out / "encoder_ablation.csv"
+
+    twins = statistics.projection_table(qv, iv, boot, info)
+    if len(twins):
+        io.write_text(out / "projection.md", tables.projection_markdown(twins, labels, n_boot))
+        io.write_text(out / "projection.csv", tables.csv_text(twins))
+        written["projection_md"], written["projection_csv"] = out / "projection.md", out / "projection.csv"
 
     dim_of = results.dim_settings(study_name, study)
     if dim_of is None:

@@ -208,6 +208,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         "seed": int(seed), "study": study.name, "study_file": study.path,
         "scenario_label": sc.label if sc else "RGB only (no graph)",
         "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
+        "depth_scale": sc.depth_scale if sc else None,
+        "projection": study.projection(scenario) if sc and kind == "graph" else None,
         "protocol": {"settings": study.protocol.settings, "siblings": study.protocol.siblings,
                      "frames": study.protocol.frames, "queries": study.protocol.queries,
                      "positives": study.protocol.positives},

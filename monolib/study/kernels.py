@@ -149,7 +149,9 @@ def discard() -> None:
 def reset_kernel(used: bool) -> None:
     """Run inside a warm kernel before each notebook. The first time (`used` False) it records the kernel's starting
     state; afterwards it restores it: the user namespace emptied, the working directory and environment variables
-    as at the start, matplotlib's figures closed and rcParams restored, every functools cache of monolib cleared."""
+    as at the start, matplotlib's figures closed and rcParams restored, every functools cache of monolib cleared.
+    Kept: the graphs files this kernel has read (`monolib.graphs.stage._READ`, by path, inode, mtime and size: a
+    file's content, never stale), so that a scenario's cells in a row read its file once."""
     import functools
     import sys
 
