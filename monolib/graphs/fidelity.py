@@ -265,10 +265,10 @@ def projected_graphs(study: Study, scenario: str, projection: str) -> dict[str, 
 
 
 def _frame_pixels(args) -> tuple:
-    """Worker: ``(Euclidean depth of the valid pixels or None, HDR nodes (n, 4) [label, R, G, B] of the colour
+    """Worker: ``(Euclidean depth of the valid pixels, HDR nodes (n, 4) [label, R, G, B] of the colour
     labels, error or None)`` of one frame; a node is the per-channel median of `color.hdf5` over the label's pixels
     with valid depth (finite, > 0), as a graph node; a missing or unreadable file gives no pixels and its error."""
-    study, key, with_depth = args
+    study, key = args
     try:
         f = scenegraphs.frame_of(study, key)
         depth, semantic = f.depth_meters, f.semantic
@@ -282,10 +282,8 @@ def _frame_pixels(args) -> tuple:
         return None, np.zeros((0, 4)), str(exc)
     with np.errstate(invalid="ignore"):
         valid = np.isfinite(depth) & (depth > 0)
-    values = None
-    if with_depth:
-        values = depth[valid]
-        values = values[:: max(1, -(-len(values) // MAX_DEPTH_PIXELS))]  # every k-th of a large frame's pixels
+    values = depth[valid]
+    values = values[:: max(1, -(-len(values) // MAX_DEPTH_PIXELS))]  # every k-th of a large frame's pixels
     nodes = []
     for _, label_id in COLOUR_LABELS:
         mask = valid & (semantic == label_id)
@@ -298,7 +296,7 @@ def frame_statistics(study: Study, graphs: list, progress: bool = False) -> dict
     """Pixel depth (`depth_statistics`) and HDR wall and floor colour (`colour_statistics` of ``HDR `` nodes, every
     setting) of the frames of `graphs` (`light_sample`), read from the dataset's files (`depth_meters`,
     `semantic`, `color.hdf5`)."""
-    jobs = [(study, str(g.frame), True) for g in graphs]
+    jobs = [(study, str(g.frame)) for g in graphs]
     read = scenegraphs.map_frames(_frame_pixels, jobs, study.dataset.workers, "fidelity: depth and HDR colour",
                                   progress)
     depths = [values for values, _, _ in read if values is not None]
