@@ -222,14 +222,20 @@ def light_sample(graphs: list) -> list:
     return graphs[:: max(DEPTH_EVERY, -(-len(graphs) // MAX_DEPTH_FRAMES))]
 
 
+def frame_colour_statistics(nodes: list[np.ndarray], frame_settings: list, kind: str) -> dict[str, float]:
+    """`colour_statistics` of each frame's nodes (`nodes[i]`: (n, 4) [label, R, G, B] of frame i, whose setting is
+    `frame_settings[i]`), every setting, in the order the settings first appear."""
+    order = {s: k for k, s in enumerate(dict.fromkeys(str(s) for s in frame_settings))}
+    flat = np.concatenate(list(nodes) + [np.zeros((0, 4))])
+    return colour_statistics(flat[:, 0].astype(np.int64), flat[:, 1:4],
+                             np.repeat(np.arange(len(nodes)), [len(n) for n in nodes]),
+                             np.array([order[str(s)] for s in frame_settings], np.int64), kind)
+
+
 def node_colour_statistics(graphs: list, kind: str) -> dict[str, float]:
-    """`colour_statistics` of the graphs' own node colours (x = [label, R, G, B]), every setting of `graphs`."""
-    order = {s: k for k, s in enumerate(dict.fromkeys(str(g.setting) for g in graphs))}
-    xs = [g.x.reshape(-1, 4).double().numpy() for g in graphs] + [np.zeros((0, 4))]
-    flat = np.concatenate(xs)
-    return colour_statistics(flat[:, 0].astype(np.int64), flat[:, 1:4], np.repeat(np.arange(len(graphs)),
-                             [len(x) for x in xs[:-1]]), np.array([order[str(g.setting)] for g in graphs], np.int64),
-                             kind)
+    """`frame_colour_statistics` of the graphs' own node colours (x = [label, R, G, B])."""
+    return frame_colour_statistics([g.x.reshape(-1, 4).double().numpy() for g in graphs],
+                                   [g.setting for g in graphs], kind)
 
 
 def depth_statistics(depths: np.ndarray) -> dict[str, float]:
@@ -303,12 +309,7 @@ def frame_statistics(study: Study, graphs: list, progress: bool = False) -> dict
     stats = depth_statistics(np.concatenate(depths) if depths else np.zeros(0))
     stats["pixel depth, frames"] = float(len(depths))
     stats["frames unreadable"] = float(sum(error is not None for _, _, error in read))
-    order = {s: k for k, s in enumerate(dict.fromkeys(str(g.setting) for g in graphs))}
-    nodes = [nodes for _, nodes, _ in read]
-    flat = np.concatenate(nodes + [np.zeros((0, 4))])
-    stats.update(colour_statistics(flat[:, 0].astype(np.int64), flat[:, 1:4],
-                                   np.repeat(np.arange(len(graphs)), [len(n) for n in nodes]),
-                                   np.array([order[str(g.setting)] for g in graphs], np.int64), kind="HDR "))
+    stats.update(frame_colour_statistics([nodes for _, nodes, _ in read], [g.setting for g in graphs], "HDR "))
     return stats
 
 

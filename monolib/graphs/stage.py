@@ -168,8 +168,8 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
                       f"are empty graphs (counted in graph_sizes.md; first: {missing[sc][0]})", flush=True)
     seconds = time.perf_counter() - t0
     for sc in todo:
-        save_torch(out[sc], {"scenario": sc, "projection": study.projection(sc), "graphs": built[sc], "missing": missing.get(sc, []), "seconds": seconds,
-                             "dropped_pixels": dropped.get(sc)})
+        save_torch(out[sc], {"scenario": sc, "projection": study.projection(sc), "graphs": built[sc],
+                             "missing": missing.get(sc, []), "seconds": seconds, "dropped_pixels": dropped.get(sc)})
         n = sum(len(v) for v in built[sc].values())
         log.info("graphs: %s built, %d graphs (%d scenarios in %.1f s)", sc, n, len(todo), seconds)
     return out
