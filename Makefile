@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid clean-runs
+.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render clean-runs
 
 install: $(STAMP)
 
@@ -68,6 +68,10 @@ bench: install
 # paper study projected on 1, 8 and 64 workers from those per-cell costs
 bench-grid: install
 	$(VENV)/bin/monolib bench --grid --out figures/scaling.json
+
+# the dataset stage of quick rendered by the generator before version 5 (c736e94) and by this one, side by side
+bench-render: install
+	$(VENV)/bin/monolib bench --render-vs c736e94 --study quick --out figures/render_bench.json
 
 clean-runs:
 	rm -rf runs/

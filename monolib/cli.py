@@ -61,6 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=192)
     p.add_argument("--study", default="quick", help="the study whose networks and resolution are timed")
     p.add_argument("--out", default=None, help="also write the figures as JSON (e.g. figures/bench.json)")
+    p.add_argument("--render-vs", default=None, metavar="COMMIT", help="instead: the study's dataset stage "
+                   "rendered by the generator of COMMIT and by this checkout's, side by side (minutes)")
     p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
                    "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
     args = parser.parse_args(argv)
@@ -125,7 +127,11 @@ def main(argv: list[str] | None = None) -> int:
             results = localize.localize(args.images, args.db, args.k)
             print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
         elif args.command == "bench":
-            if args.grid:
+            if args.render_vs:
+                from monolib import bench  # deferred: torch
+
+                bench.render_side_by_side(args.render_vs, args.study, args.out)
+            elif args.grid:
                 from monolib.study import scaling  # deferred: torch
 
                 scaling.run(out=args.out)

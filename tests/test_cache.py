@@ -92,6 +92,25 @@ def test_a_missing_file_of_a_download_is_an_empty_graph_counted_in_graph_sizes(s
         graph_sizes.graph_sizes_markdown(table)
 
 
+def test_a_cell_key_holds_the_frames_the_graph_stage_could_not_read(study, tmp_path):
+    """Issue 26: the graphs of a download with a file lost are other graphs (an empty one for that frame): the cells
+    on them have another key, though every upstream key is the same."""
+    one = {"s1": study.scenarios["s1"]}
+    whole = dataclasses.replace(study, scenarios=one)
+    root = tmp_path / "download"
+    shutil.copytree(study.dataset.root, root)
+    broken = dataclasses.replace(study, name="cache_test_broken", scenarios=one,
+                                 dataset=dataclasses.replace(study.dataset, root=str(root)))
+    frames_of(broken)[2].files["depth_meters"].unlink()
+    assert scenegraphs.scenario_key(broken, "s1") == scenegraphs.scenario_key(whole, "s1")
+    unbuilt = cell.cell_key(whole, "gcn", "s1", 1.0, 0)  # (graphs not built: nothing known unread)
+    assert scenegraphs.load_file(whole, "s1")["missing"] == []
+    assert len(scenegraphs.load_file(broken, "s1")["missing"]) == 1
+    assert cell.cell_key(whole, "gcn", "s1", 1.0, 0) == unbuilt
+    assert cell.cell_key(broken, "gcn", "s1", 1.0, 0) != unbuilt
+    assert cell.graph_inputs(whole, "s1") == scenegraphs.scenario_key(whole, "s1")
+
+
 # ---- corrupt cached files are recomputed -------------------------------------------------------------------
 
 def test_a_graphs_file_cut_in_half_is_rebuilt_with_a_warning(study, caplog):

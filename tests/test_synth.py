@@ -58,6 +58,15 @@ def smoke_study():
     return params.load_study("smoke")
 
 
+def _tiny_study():
+    from types import SimpleNamespace
+
+    ds = SimpleNamespace(width=64, height=48, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
+                         frames_per_setting=4, train_frames_per_setting=4, dim_fraction=0.0, tilt_shift_settings=0,
+                         workers=1)
+    return SimpleNamespace(seed=3, dataset=ds)
+
+
 def test_plan_families_splits_and_names(smoke_study):
     q = params.load_study("quick")
     for study in (smoke_study, q):
@@ -122,10 +131,11 @@ def test_files_dtypes_shapes_and_labels(smoke_dataset, smoke_study):
             assert not (a == 0).any()
         assert set(np.unique(sem)) <= {-1, *range(1, 41)}
         assert (inst >= -1).all() and (ent >= -1).all()
-        invalid = ent == -1
-        assert ((sem == -1) >= invalid).all() and ((inst == -1) == invalid).all()
+        invalid = ent == -1  # the sky through a window: no geometry, no depth, the sky's radiance
+        unlabelled = sem == -1  # the sky and the outside (ground, facades, trees: geometry without a label)
+        assert (unlabelled >= invalid).all() and ((inst == -1) == unlabelled).all()
         assert (np.isnan(depth) == invalid).all()
-        assert (color[invalid] == 0).all()  # background colour 0, not NaN
+        assert (color[invalid] > 0).all()
         assert f["tonemap"].is_file()
         jpg = cv2.imread(str(f["tonemap"]))
         assert jpg is not None and jpg.shape == (H, W, 3)
@@ -166,10 +176,10 @@ def test_camera_poses(smoke_dataset):
             assert list(idx) == list(range(len(t)))
             np.testing.assert_allclose(R.transpose(0, 2, 1) @ R, np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
             np.testing.assert_allclose(np.linalg.det(R), 1.0, atol=1e-9)
-            assert (R[:, 2, 1] > 0.9).all()  # camera y (up) is about world +z: pitch within 25 degrees, no roll
+            assert (R[:, 2, 1] > 0.857).all()  # camera y (up) is about world +z: pitch within 30 degrees, no roll
             assert (R[:, 2, 0] == pytest.approx(0.0, abs=1e-9))  # camera x stays horizontal
             h = t[:, 2] * mpau
-            assert ((h >= 0.99) & (h <= 1.81)).all()
+            assert ((h >= 1.09) & (h <= 1.91)).all()  # Hypersim's walk: standing height, +-0.25 m a step
             fwd = -R[:, :, 2]
             to_look = look - t
             assert (np.einsum("ij,ij->i", fwd, to_look / np.linalg.norm(to_look, axis=1, keepdims=True)) > 0.999).all()
@@ -256,6 +266,68 @@ def test_resume_skips_finished_settings(smoke_dataset, smoke_study, tmp_path, ca
     assert not list(root.glob(".tmp_*"))
     assert (root / "ai_900_001" / "_detail" / "cam_00" / "camera_keyframe_positions.hdf5").stat().st_mtime_ns == before
     assert split_rows(root) == split_rows(smoke_dataset)
+
+
+def test_version_5_views_reach_the_outside_and_the_next_room(smoke_dataset):
+    """Real depth (issue 26): windows show unlabelled outside geometry 10 to 80 m away and the sky (no depth); the
+    cameras walk as Hypersim's (steps of at most 1.5 m across and 0.25 m up or down)."""
+    far, outside, sky, total = 0, 0, 0, 0
+    for s, cam, i in frames_on_disk(smoke_dataset):
+        f = files(s, cam, i)
+        depth, sem = h5(f["depth_meters"]).astype(np.float64), h5(f["semantic"])
+        total += depth.size
+        far += int((depth > 10).sum())
+        outside += int(((sem == -1) & np.isfinite(depth)).sum())
+        sky += int(np.isnan(depth).sum())
+    assert far / total > 0.01 and outside / total > 0.005 and sky > 0
+    for s in sorted(smoke_dataset.glob("ai_*")):
+        for cam in (s / "_detail").glob("cam_*"):
+            t = h5(cam / "camera_keyframe_positions.hdf5") * mpau_of(s)
+            step = np.diff(t, axis=0)
+            assert (np.hypot(step[:, 0], step[:, 1]) <= 1.5 + 1e-9).all()
+            assert (np.abs(step[:, 2]) <= 0.25 + 1e-9).all()
+
+
+def test_version_5_light_falls_off_across_a_wall():
+    """Real light (issue 26): one wall's HDR radiance varies within a view (windows, lamps, corners), well beyond
+    the 4% of its paint's texture."""
+    study = _tiny_study()
+    s = synth.plan(study)[0]
+    fam, lay, mesh, scenes, r = synth.build_setting(s, study.seed)
+    from monolib.data.hypersim import Camera
+
+    rays = Camera.canonical(64, 48).rays(48, 64)
+    spreads = []
+    for eyes, Rs, _ in scenes:
+        fo = synth.render_frame(r, rays, eyes[0], Rs[0], 1.0)
+        wall = fo.semantic == 1
+        if wall.sum() > 50:
+            spreads.append(np.log(fo.color[wall].mean(axis=1)).std())
+    assert spreads and max(spreads) > 0.25, spreads
+
+
+def test_a_damaged_render_is_rendered_again(smoke_dataset, smoke_study, tmp_path, capsys):
+    """Issue 26: a truncated depth_meters.hdf5 of a finished setting is noticed by its size, named, and the setting
+    rendered again to the same bytes; the other settings are kept."""
+    root = tmp_path / "dataset"
+    shutil.copytree(smoke_dataset, root)
+    victim = synth.plan(smoke_study)[1]["name"]
+    depth = root / victim / "images" / "scene_cam_00_geometry_hdf5" / "frame.0000.depth_meters.hdf5"
+    whole = depth.read_bytes()
+    depth.write_bytes(whole[: len(whole) // 2])
+    (root / victim / "images" / "scene_cam_00_final_preview" / "frame.0001.tonemap.jpg").unlink()
+    marker = json.loads((root / victim / "_detail" / "monolib_synth_setting.json").read_text())
+    assert len(marker["files"]) == sum(1 for p in (smoke_dataset / victim).rglob("*") if p.is_file()) - 1
+    capsys.readouterr()
+    synth.render_dataset(smoke_study, root, progress=False)
+    out = capsys.readouterr().out
+    n = len(synth.plan(smoke_study))
+    assert f"{victim}: images/scene_cam_00_final_preview/frame.0001.tonemap.jpg and 1 more missing or not the " \
+           "size rendered" in out
+    assert f"{n - 1} already complete (skipped), 1 to render" in out
+    assert depth.read_bytes() == whole
+    np.testing.assert_array_equal(h5(depth), h5(smoke_dataset / depth.relative_to(root)))
+    assert not list((root / ".aside").glob(f"{victim}@*")) if (root / ".aside").exists() else True
 
 
 def test_tilt_shift_setting_through_the_reader(smoke_dataset):

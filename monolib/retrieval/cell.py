@@ -40,12 +40,25 @@ def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed
     return Path(out_dir) if out_dir else paths.cell_dir(study.name, method, scenario, threshold, seed)
 
 
-def inputs_key(study: Study, method: str, scenario: str) -> str:
-    """The key of what a cell reads: its scenario's graphs (the graph stage's `scenario_key`) for a graph method,
-    the frames (the data stage's `dataset_key`) for an image method."""
+def inputs_key(study: Study, method: str, scenario: str, graph_key: Optional[str] = None,
+               build: bool = False) -> str:
+    """The key of what a cell reads: for a graph method its scenario's graphs (`graph_inputs`), for an image method
+    the frames (the data stage's `dataset_key`). `graph_key`: the graph stage's `scenario_key`, when known."""
     if methods.kind(method, study) == "graph":
-        return scenegraphs.scenario_key(study, scenario)
+        return graph_inputs(study, scenario, graph_key, build)
     return dataset.dataset_key(study)
+
+
+def graph_inputs(study: Study, scenario: str, graph_key: Optional[str] = None, build: bool = False) -> str:
+    """The graph stage's `scenario_key` and, when the stage could not read some frames' files (empty graphs, the
+    graphs file's ``missing``), which ones: a cell computed on graphs with other frames missing (or none) is not
+    reused. With every frame read this is the scenario key itself, as it is while the graphs are not built yet
+    (`build`: build them first; `run_cell` does, so a cell's record holds the key of the graphs it read)."""
+    graph_key = graph_key or scenegraphs.scenario_key(study, scenario)
+    if not build and not scenegraphs.graphs_path(study, scenario, graph_key).is_file():
+        return graph_key
+    missing = scenegraphs.load_file(study, scenario, key=graph_key).get("missing") or []
+    return key_of({"graphs": graph_key, "unread": sorted(missing)}) if missing else graph_key
 
 
 def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: int,
@@ -150,7 +163,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     if not threshold >= 0:
         raise StudyError(f"threshold {threshold}: expected 0 (no edges), a distance in metres > 0, or inf")
     folder = cell_folder(study, method, scenario, threshold, seed, out_dir)
-    inputs = inputs_key(study, method, scenario)  # the graph stage's key (the data stage's for an image method)
+    graph_key = scenegraphs.scenario_key(study, scenario) if kind == "graph" else None
+    inputs = inputs_key(study, method, scenario, graph_key, build=True)  # the graphs' (the frames' for an image one)
     key = cell_key(study, method, scenario, threshold, seed, inputs)
     if force:
         record = None
@@ -170,7 +184,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     t = time.perf_counter()
     if kind == "graph":
         spec = study.gcn_spec(method)
-        graphs = scenegraphs.load(study, scenario, key=inputs)
+        graphs = scenegraphs.load(study, scenario, key=graph_key)
         both = spec.edges == "both"
         split = {k: [graph.at_threshold(g, threshold, both) for g in v] for k, v in graphs.items()}
         timings["graphs_s"] = time.perf_counter() - t

@@ -19,7 +19,8 @@ from monolib.params import Study, StudyError, load_study
 from monolib.perception import stage as perception
 from monolib.progress import tqdm
 from monolib.report import graph_sizes, readme, viz
-from monolib.retrieval.cell import IMAGE_SCENARIO, cell_key, claim, copy_cell, is_complete, refresh_metrics, run_cell
+from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete, refresh_metrics,
+                                    run_cell)
 from monolib.retrieval.grid import CellSpec, grid  # noqa: F401  (the grid: monolib.retrieval.grid; re-exported)
 from monolib.study import cluster, kernels
 
@@ -186,8 +187,10 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
     cells = grid(study)
     data_key = dataset.dataset_key(study)  # the upstream stages' keys, once: each cell's key is its inputs' + its own
     scenario_keys = scenegraphs.scenario_keys(study, data_key) if study.graph_methods() else {}
+    graph_cells = {c.scenario for c in cells if methods.kind(c.method, study) == "graph"}
+    inputs = {sc: graph_inputs(study, sc, scenario_keys[sc], build=True) for sc in sorted(graph_cells)}  # + unread
     keys = {c.name: cell_key(study, c.method, c.scenario, c.threshold, c.seed,
-                             scenario_keys[c.scenario] if methods.kind(c.method, study) == "graph" else data_key)
+                             inputs[c.scenario] if methods.kind(c.method, study) == "graph" else data_key)
             for c in cells}
     records = {c.name: claim(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
     todo = [c for c in cells if records[c.name] is None]

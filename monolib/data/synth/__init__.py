@@ -7,12 +7,19 @@ lighting and viewpoints -- the paper's "two neighbouring offices". Volumes start
 never be confused with a real Hypersim scene.
 
 What makes it look like Hypersim where place recognition is decided (../shared/docs/real-hypersim-statistics.md;
-`monolib.graphs.fidelity` measures it for every study): each family has its own paints, woods, tiles and fabrics drawn from
-a wide continuous space, so walls and floors of two places differ more than one wall seen twice; surfaces carry
-clutter (vases, bottles, bowls, books, table lamps), floors carry plants, some families have skirting boards and
-pendant lamps; the cameras of a setting dwell on one part of the room (`make_trajectories`) with one exposure per
-scene, and some of them look up enough to show the ceiling. The test split holds one setting per family (the
-`paper` protocol) and, for the first `test_siblings` families, a sibling setting (the `siblings` protocol).
+`monolib.graphs.fidelity` measures it for every study, `figures/fidelity.md`): each family has its own paints, woods,
+tiles and fabrics drawn from a wide continuous space, so walls and floors of two places differ more than one wall
+seen twice; surfaces carry clutter (vases, bottles, bowls, books, table lamps), floors carry plants, some families
+have skirting boards and pendant lamps. Since generator version 5 (issue 26) the rooms have real Hypersim's depth
+and light: rooms of 5 to 10 m a side (bathrooms 3-5 m), most with the next room behind an opening (an open-plan
+dining or kitchen area, often an L, or a room behind a doorway: `rooms._make_annex`); large windows that show the
+outside 10 to 80 m away (ground, facades, trees; a flat's street below: unlabelled geometry, the sky no depth); the
+cameras walk as Hypersim's (`cameras.make_trajectories`: an artist's viewpoint across the room, then scored
+random-walk steps); the light is daylight through the windows (the sky as an area light at each window, the sun's
+patches), ceiling fixtures and lamps with inverse-square fall-off and shadows, corners darker and light bounced off
+the walls' paint (`render.Renderer.shade`), exposed per setting as an artist would (`cameras.setting_exposure`).
+The test split holds one setting per family (the `paper` protocol) and, for the first `test_siblings` families, a
+sibling setting (the `siblings` protocol).
 
 Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to
 the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim
@@ -22,10 +29,12 @@ The modules, in the order they build on each other (each imports only those abov
 
 - `materials`: the materials of a family (`_family_materials`) and their procedural albedo (`_albedo`);
 - `furniture`: mesh parts, objects and items, the furniture builders and their `CATALOGUE`;
-- `rooms`: room types, families (`make_family`) and the layout of one setting (`make_layout`);
-- `mesh`: the triangle mesh of a setting with its classes, instances and materials (`build_mesh`);
+- `rooms`: room types, families (`make_family`: the annex and the outside too) and the layout of one setting
+  (`make_layout`: doors, windows, furniture, lights);
+- `mesh`: the triangle mesh of a setting, its annex and the outside, with classes, instances and materials
+  (`build_mesh`);
 - `render`: ray casting and shading (`Renderer`, `render_frame`);
-- `cameras`: camera models, trajectories (`make_trajectories`), exposures and `refine_views`;
+- `cameras`: camera models, trajectories (`make_trajectories`, `view_score`) and exposures;
 - `setting`: one setting built, rendered and written in Hypersim's layout (`render_setting`);
 - `dataset`: the study's `plan`, setting keys, `render_dataset` (resumable, ``.tmp_*`` render folders, settings of
   another key set aside in ``.aside/``), the dataset-level metadata files and `benchmark`.
@@ -35,7 +44,7 @@ use `plan`, `make_family`, `make_layout`, `render_setting`, `_setting_key`, ...)
 """
 from __future__ import annotations
 
-from monolib.data.synth.cameras import FOV_X, look_rotation, make_trajectories, refine_views, scene_exposures
+from monolib.data.synth.cameras import FOV_X, look_rotation, make_trajectories, scene_exposures, view_score
 from monolib.data.synth.dataset import (CAMERA_COLUMNS, FORMAT_VERSION, SPLIT_COLUMNS, TRAJECTORY_COLUMNS, VOLUME0,
                                         _setting_key, benchmark, plan, render_dataset)
 from monolib.data.synth.furniture import CATALOGUE, Item, Obj
@@ -48,5 +57,5 @@ from monolib.data.synth.setting import build_setting, render_setting
 __all__ = ["CAMERA_COLUMNS", "CATALOGUE", "FORMAT_VERSION", "FOV_X", "Family", "FrameOut", "Item", "Layout",
            "Material", "Obj", "ROOMS", "ROOM_TYPES", "Renderer", "SPLIT_COLUMNS", "SceneMesh", "TRAJECTORY_COLUMNS",
            "VOLUME0", "_setting_key", "benchmark", "build_mesh", "build_setting", "look_rotation", "make_family",
-           "make_layout", "make_trajectories", "plan", "refine_views", "render_dataset", "render_frame",
-           "render_setting", "scene_exposures"]
+           "make_layout", "make_trajectories", "plan", "render_dataset", "render_frame",
+           "render_setting", "scene_exposures", "view_score"]

@@ -1,6 +1,6 @@
 """The cameras of the mini-Hypersim: the camera models (the canonical one, ai_037_002's tilt-shift one), the
-trajectories of a setting's scenes (`make_trajectories`), their exposures and the views turned away from walls at
-arm's length (`refine_views`)."""
+trajectories of a setting's scenes (`make_trajectories`: Hypersim's scored random walk, `view_score`) and their
+exposures."""
 from __future__ import annotations
 
 import math
@@ -35,88 +35,129 @@ def look_rotation(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.stack([x, y, z], axis=1)
 
 
-def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int) -> list:
-    """1-2 scenes; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres).
-
-    As in Hypersim, the cameras of a setting dwell on one part of the room: a piece of furniture and what stands
-    within 2 m of it. Each scene starts 1.8-4 m away from that part, walks 0.3-1.5 m through free floor, and looks
-    at it with a slow wander of its gaze; the height it looks at (0.4-2.1 m) is the scene's own, so some scenes
-    show the ceiling and others the floor in front of the furniture.
-    """
-    rng = np.random.default_rng([seed, 32452843, setting_index])
-    n_scenes = 1 if n_frames < 24 else int(rng.integers(1, 3))
-    counts = [n_frames // n_scenes + (1 if k < n_frames % n_scenes else 0) for k in range(n_scenes)]
-    res = 0.1
+def _free_floor(lay: Layout, res: float = 0.1):
+    """(cell centres x, y, free mask) of the main room's floor where a camera may stand: clear of the walls and of
+    every footprint."""
     nx, ny = int(lay.W / res), int(lay.D / res)
     gx, gy = (np.arange(nx) + 0.5) * res, (np.arange(ny) + 0.5) * res
     X, Y = np.meshgrid(gx, gy, indexing="ij")
-    m = 0.6 if min(lay.W, lay.D) > 3.6 else 0.45
-    free = (X > m) & (X < lay.W - m) & (Y > m) & (Y < lay.D - m)
+    free = (X > 0.5) & (X < lay.W - 0.5) & (Y > 0.5) & (Y < lay.D - 0.5)
     for r in lay.rects:
         free &= ~((X > r[0] - 0.25) & (X < r[2] + 0.25) & (Y > r[1] - 0.25) & (Y < r[3] + 0.25))
     if not free.any():
         free = (X > 0.4) & (X < lay.W - 0.4) & (Y > 0.4) & (Y < lay.D - 0.4)
+    return gx, gy, free
+
+
+PROBE_W, PROBE_H = 16, 12
+
+
+def view_score(r: Renderer, eye: np.ndarray, R: np.ndarray, probe: np.ndarray) -> float:
+    """Hypersim's score of a candidate view: (share of valid pixels)^2 x (distinct objects seen), on a 16x12 probe;
+    a view closer than 1 m to what it faces (a wall at arm's length) scores less."""
+    tri, t = r.cast(eye, probe @ R.T)
+    hit = tri >= 0
+    if not hit.any():
+        return 0.0
+    inst = r.mesh.part_inst[r.mesh.face_part[tri[hit]]]
+    objects = len(np.unique(inst[inst >= 1]))
+    return float(hit.mean() ** 2 * objects * min(1.0, float(np.median(t[hit])) / 1.0))
+
+
+def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int, r: Renderer) -> list:
+    """1-2 scenes; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres).
+
+    As Hypersim's: each scene starts at a viewpoint an artist would choose (standing height, 1.5-1.7 m, near the
+    edge of the free floor, looking across the room towards its far side: the best of 12 such views by
+    `view_score`), then takes random-walk steps: the camera up to 1.5 m horizontally and 0.25 m vertically, its
+    look-at point up to 3 m, one of 8 candidates drawn in proportion to its `view_score` each time (pitch within -30..+12 degrees)."""
+    rng = np.random.default_rng([seed, 32452843, setting_index])
+    n_scenes = 1 if n_frames < 12 else int(rng.integers(1, 3))
+    counts = [n_frames // n_scenes + (1 if k < n_frames % n_scenes else 0) for k in range(n_scenes)]
+    gx, gy, free = _free_floor(lay)
+    fi, fj = np.nonzero(free)
+    cells = np.c_[gx[fi], gy[fj]]
+    probe = Camera.canonical(PROBE_W, PROBE_H).rays(PROBE_H, PROBE_W).reshape(-1, 3)
+    probe = probe / np.linalg.norm(probe, axis=1, keepdims=True)
+    x0 = min(b[0] for b in lay.rooms)
+    y0 = min(b[1] for b in lay.rooms)
+    x1 = max(b[2] for b in lay.rooms)
+    y1 = max(b[3] for b in lay.rooms)
+    centre = np.array([lay.W / 2, lay.D / 2])
 
     def is_free(p):
-        i, j = int(p[0] / res), int(p[1] / res)
-        return 0 <= i < nx and 0 <= j < ny and bool(free[i, j])
+        i, j = int(p[0] / 0.1), int(p[1] / 0.1)
+        return 0 <= i < len(gx) and 0 <= j < len(gy) and bool(free[i, j])
 
-    # the part of the room the cameras dwell on: a piece of furniture (larger ones more often) and its neighbours;
-    # a second scene looks at the same part or, half of the time, at another one
-    things = [it for it in lay.items if it.kind not in ("ceiling_lamp", "floormat")]
-    weight = np.array([max(0.1, it.w * it.d) for it in things]) ** 0.5
+    def pose(eye, look):
+        reach = max(float(np.linalg.norm(look[:2] - eye[:2])), 0.5)
+        look = look.copy()
+        look[2] = eye[2] + np.clip(look[2] - eye[2], reach * math.tan(math.radians(-30)), reach * math.tan(math.radians(12)))
+        return look, look_rotation(eye, look)
 
-    def part_of_room() -> np.ndarray:
-        anchor = things[int(rng.choice(len(things), p=weight / weight.sum()))]
-        near = np.array([[it.x, it.y] for it in things if math.hypot(it.x - anchor.x, it.y - anchor.y) < 2.0])
-        return 0.5 * (near.mean(axis=0) + np.array([anchor.x, anchor.y]))
-
-    focus = part_of_room()
     scenes = []
-    fi, fj = np.nonzero(free)
-    for c, n in enumerate(counts):
-        if c > 0 and rng.uniform() < 0.5:
-            focus = part_of_room()
-        dist = np.hypot(gx[fi] - focus[0], gy[fj] - focus[1])
-        ring = np.flatnonzero((dist > 1.8) & (dist < 4.0))
-        k = int(rng.choice(ring)) if len(ring) else int(np.argmax(dist))
-        p = np.array([gx[fi[k]], gy[fj[k]]]) + rng.uniform(-0.04, 0.04, 2)
-        # a short walk through free floor, roughly across the line of sight
-        sight = math.atan2(focus[1] - p[1], focus[0] - p[0])
-        heading = sight + rng.choice([-1, 1]) * math.pi / 2 + rng.normal(0, 0.4)
-        step = rng.uniform(0.3, 1.5) / max(1, n - 1)
-        pts = [p.copy()]
-        for _s in range(n - 1):
-            heading += rng.normal(0, 0.1)
-            for _t in range(16):
-                q = pts[-1] + step * np.array([math.cos(heading), math.sin(heading)])
-                if is_free(q):
-                    break
-                heading += rng.uniform(0.5, 2.5)
-            else:
-                q = pts[-1]
-            pts.append(q)
-        pts = np.array(pts)
-        h0 = rng.uniform(1.2, 1.7)
-        eyes = np.c_[pts, np.clip(h0 + 0.02 * np.sin(np.linspace(0, 3, n) + rng.uniform(0, 6)), 1.0, 1.8)]
-        # the gaze: the focus plus a slow wander (two sines per axis) at the scene's own height
-        t = np.linspace(0, 1, n)
-        wander = np.stack([a * np.sin(2 * math.pi * f * t + ph) for a, f, ph in
-                           zip(rng.uniform(0.4, 1.2, 3) * np.array([1, 1, 0.3]), rng.uniform(0.3, 1.0, 3),
-                               rng.uniform(0, 2 * math.pi, 3))], axis=1)
-        looks = np.c_[np.broadcast_to(focus, (n, 2)), np.full(n, rng.uniform(0.4, 2.1))] + wander
-        reach = np.maximum(np.linalg.norm(looks[:, :2] - eyes[:, :2], axis=1), 0.5)  # pitch within -25..+22 degrees
-        looks[:, 2] = eyes[:, 2] + np.clip(looks[:, 2] - eyes[:, 2], reach * math.tan(math.radians(-25)),
-                                           reach * math.tan(math.radians(22)))
-        Rs = np.stack([look_rotation(e, q) for e, q in zip(eyes, looks)])
-        scenes.append((eyes, Rs, looks))
+    edge = np.hypot(*((cells - centre) / np.maximum(centre, 1e-6)).T)  # 0 at the centre, 1 at the walls
+    start_pool = np.flatnonzero(edge > np.quantile(edge, 0.5)) if len(cells) > 4 else np.arange(len(cells))
+    for n in counts:
+        best = None
+        for _ in range(12):
+            e2 = cells[int(rng.choice(start_pool))] + rng.uniform(-0.04, 0.04, 2)
+            across = 2 * centre - e2 + rng.normal(0, 0.8, 2)  # the far side of the room
+            eye = np.r_[e2, rng.uniform(1.5, 1.7)]
+            look, R = pose(eye, np.r_[across, rng.uniform(0.5, 1.2)])
+            score = view_score(r, eye, R, probe)
+            if best is None or score > best[0]:
+                best = (score, eye, look, R)
+        _, eye, look, R = best
+        eyes, looks, Rs = [eye], [look], [R]
+        for _ in range(n - 1):
+            candidates = []
+            for _c in range(8):
+                step = rng.uniform(0, 1.5) * np.array([math.cos(a := rng.uniform(0, 2 * math.pi)), math.sin(a)])
+                e = np.r_[eye[:2] + step, np.clip(eye[2] + rng.uniform(-0.25, 0.25), 1.1, 1.9)]
+                if not is_free(e):
+                    continue
+                q = look + np.r_[rng.uniform(-3.0, 3.0, 2), rng.uniform(-0.25, 0.25)]
+                q[:2] = np.clip(q[:2], [x0 + 0.2, y0 + 0.2], [x1 - 0.2, y1 - 0.2])
+                q[2] = np.clip(q[2], 0.2, lay.H - 0.2)
+                if np.linalg.norm(q[:2] - e[:2]) < 1.5:
+                    q[:2] = e[:2] + (q[:2] - e[:2]) / max(np.linalg.norm(q[:2] - e[:2]), 1e-6) * 1.5
+                q, Rq = pose(e, q)
+                candidates.append((view_score(r, e, Rq, probe), e, q, Rq))
+            scores = np.array([c[0] for c in candidates])
+            if len(candidates) and scores.sum() > 0:  # a candidate drawn in proportion to its score
+                _, eye, look, R = candidates[int(rng.choice(len(candidates), p=scores / scores.sum()))]
+            eyes.append(eye)
+            looks.append(look)
+            Rs.append(R)
+        scenes.append((np.array(eyes), np.stack(Rs), np.array(looks)))
     return scenes
 
 
+def setting_exposure(r: Renderer, scenes: list, compensation: float = 0.5, target: float = 0.5) -> float:
+    """The exposure an artist sets for a whole setting (Hypersim: no auto-exposure, one exposure per scene): the
+    median radiance of the first view of each trajectory (a 32x24 render) brought `compensation` of the way (in log)
+    to `target`, so that dark rooms stay darker than bright ones."""
+    rays = Camera.canonical(32, 24).rays(24, 32).reshape(-1, 3)
+    rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    values = []
+    for eyes, Rs, _looks in scenes:
+        d = rays @ Rs[0].T
+        tri, t = r.cast(eyes[0], d)
+        hit = tri >= 0
+        if hit.any():
+            colour = r.shade(tri[hit], eyes[0] + d[hit] * t[hit, None], d[hit])
+            values.append(colour @ np.array([0.3, 0.59, 0.11]))
+    if not values:
+        return 1.0
+    median = max(float(np.median(np.concatenate(values))), 1e-6)
+    return float(np.exp(compensation * (math.log(target) - math.log(median))))
+
+
 def scene_exposures(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Exposure of each frame of one scene: one level per scene (x0.7-1.3) and a 2% flicker, steady along the
+    """Exposure of each frame of one scene: one level per scene (x0.55-1.8) and a 2% flicker, steady along the
     trajectory as in Hypersim's renders."""
-    return np.exp(rng.uniform(np.log(0.7), np.log(1.3)) + rng.normal(0, 0.02, n))
+    return np.exp(rng.uniform(np.log(0.55), np.log(1.8)) + rng.normal(0, 0.02, n))
 
 
 def _camera_M(s: dict, width: int, height: int) -> np.ndarray:
@@ -132,32 +173,3 @@ def _camera_proj(s: dict, width: int, height: int) -> np.ndarray:
     ty = tx * height / width
     return np.array([[1 / tx, 0, 0, 0], [0, 1 / ty, 0, 0], [0, 0, -1.002002002002002, -2.002002002002002],
                      [0, 0, -1.0, 0]])
-
-
-def refine_views(r: "Renderer", scenes: list, min_depth: float = 1.2) -> list:
-    """Turn a frame that faces a wall or furniture at arm's length up to 40 degrees towards open room (probe: 12x9
-    rays); the gaze stays on the part of the room the scene dwells on."""
-    probe = Camera.canonical(12, 9).rays(9, 12).reshape(-1, 3)
-    probe = probe / np.linalg.norm(probe, axis=1, keepdims=True)
-    offsets = [0.0] + [sgn * k * math.radians(20) for k in range(1, 3) for sgn in (1, -1)]
-    out = []
-    for eyes, Rs, looks in scenes:
-        Rs, looks = Rs.copy(), looks.copy()
-        for i, (e, R) in enumerate(zip(eyes, Rs)):
-            f = -R[:, 2]
-            yaw0, pitch = math.atan2(f[1], f[0]), math.asin(np.clip(f[2], -1, 1))
-            best = (-1.0, None)
-            for off in offsets:
-                yw = yaw0 + off
-                d = np.array([math.cos(yw) * math.cos(pitch), math.sin(yw) * math.cos(pitch), math.sin(pitch)])
-                Rc = look_rotation(e, e + d)
-                tri, t = r.cast(e, probe @ Rc.T)
-                med = float(np.nanmedian(np.where(tri >= 0, t, 10.0)))
-                if med > best[0]:
-                    best = (med, Rc)
-                if med >= min_depth:
-                    break
-            Rs[i] = best[1]
-            looks[i] = e - best[1][:, 2] * max(1.0, min(best[0], 4.0))
-        out.append((eyes, Rs, looks))
-    return out

@@ -21,14 +21,14 @@ import numpy as np
 
 from monolib.data.synth.cameras import FOV_X, _camera_M, _camera_proj
 from monolib.data.synth.rooms import ROOM_TYPES, SCENE_TYPE_LABEL
-from monolib.data.synth.setting import _write_csv, render_setting
+from monolib.data.synth.setting import _write_csv, broken_files, render_setting
 from monolib.io import move_aside, write_json
 from monolib.progress import tqdm
 from monolib.versions import code_version
 
 
 VOLUME0 = 900  # families are volumes ai_900, ai_901, ... wrapping to ai_000 after ai_999 (3 digits, as in Hypersim)
-FORMAT_VERSION = 4  # bump when the generator changes: finished settings with another version are re-rendered
+FORMAT_VERSION = 5  # bump when the generator changes: finished settings with another version are re-rendered
 
 # Hypersim's metadata_camera_parameters.csv columns (contrib/mikeroberts3000), names only
 CAMERA_COLUMNS = (
@@ -181,6 +181,9 @@ def _restore(final: Path, key: dict) -> Optional[dict]:
 
 
 def _finished(final: Path, key: dict) -> Optional[dict]:
+    """The info of a setting rendered with `key` and still whole (every file its marker lists, at the size it was
+    written), else None. A render whose files were damaged since (truncated, deleted) is named on stdout, removed
+    and so rendered again; a marker without a file list (written before the check existed) is trusted."""
     marker = final / "_detail" / "monolib_synth_setting.json"
     if not marker.is_file():
         return None
@@ -188,7 +191,16 @@ def _finished(final: Path, key: dict) -> Optional[dict]:
         data = json.loads(marker.read_text())
     except (OSError, ValueError):
         return None
-    return data.get("info") if data.get("key") == json.loads(json.dumps(key)) else None
+    if data.get("key") != json.loads(json.dumps(key)):
+        return None
+    broken = broken_files(final, data.get("files", {}))
+    if broken:
+        more = f" and {len(broken) - 1} more" if len(broken) > 1 else ""
+        print(f"monolib.data.synth: {final}: {broken[0]}{more} missing or not the size rendered; "
+              f"rendering the setting again", flush=True)
+        shutil.rmtree(final)
+        return None
+    return data.get("info")
 
 
 def render_dataset(study, out_dir, progress: bool = True) -> Path:

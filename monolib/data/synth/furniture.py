@@ -3,7 +3,7 @@
 placements."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -56,6 +56,7 @@ class Item:
     y: float = 0.0
     yaw: float = 0.0
     z0: float = 0.0
+    lights: list = field(default_factory=list)  # bulbs (x, y, z) in the item's frame: its lamps' point lights
 
 
 # ---- furniture builders: local frame, footprint centred at the origin, front towards +y ----------------------

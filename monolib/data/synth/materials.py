@@ -10,7 +10,7 @@ import numpy as np
 
 N_PROP_MATERIALS = 4  # colours of a family's small props
 
-PAINT, WOOD, FABRIC, TILES, PICTURE, BOOKS, PLAIN, STONE, GLASS, RUG = range(10)
+PAINT, WOOD, FABRIC, TILES, PICTURE, BOOKS, PLAIN, STONE, RUG, FACADE = range(10)
 
 
 @dataclass
@@ -36,12 +36,12 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
     """
     u = rng.uniform
 
-    def paint(sat_hi=0.65, v=(0.3, 0.95)) -> Material:
+    def paint(sat_hi=0.7, v=(0.2, 0.95)) -> Material:
         # a third of the paints are near-neutral (white, grey, beige), the rest carry a colour
         sat = u(0.0, 0.08) if u() < 0.33 else u(0.1, sat_hi)
         return Material(PAINT, _hsv(u(0, 1), sat, u(*v)), seed=u(0, 100))
 
-    def wood(v=(0.25, 0.85)) -> Material:
+    def wood(v=(0.15, 0.9)) -> Material:
         val = u(*v)
         return Material(WOOD, _hsv(u(0.03, 0.11), u(0.3, 0.75), val), _hsv(u(0.03, 0.1), u(0.45, 0.85), val * 0.55),
                         u(40, 110), u(0, 100))
@@ -50,7 +50,7 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
         return Material(FABRIC, _hsv(u(0, 1), u(0.05, 0.6), u(0.25, 0.85)), scale=u(*scale), seed=u(0, 100))
 
     def tiles() -> Material:
-        h, v = u(0, 1), u(0.35, 0.9)
+        h, v = u(0, 1), u(0.25, 0.95)
         return Material(TILES, _hsv(h, u(0.0, 0.4), v), _hsv(h, 0.05, v * 0.55), u(0.2, 0.5), u(0, 100))
 
     def rug() -> Material:
@@ -75,7 +75,6 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
     m["door"] = wood() if u() < 0.6 else paint(0.5, (0.2, 0.95))
     m["frame"] = Material(PAINT, _hsv(u(0, 1), u(0.0, 0.1), u(0.7, 0.95)), seed=2.0)
     m["skirting"] = m["frame"] if u() < 0.5 else wood()
-    m["glass"] = Material(GLASS, (0.05, 0.05, 0.05), emission=(1.0, 1.1, 1.3))
     m["wood"] = wood()
     m["wood2"] = wood() if u() < 0.5 else paint(0.6, (0.2, 0.95))
     m["fabric"] = fabric()
@@ -99,6 +98,11 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
     m["leaves"] = Material(FABRIC, _hsv(u(0.22, 0.4), u(0.4, 0.8), u(0.25, 0.6)), scale=u(60, 120), seed=u(0, 100))
     m["paper"] = Material(PLAIN, (0.85, 0.85, 0.82))
     m["mirror"] = Material(PLAIN, (0.55, 0.6, 0.62), emission=(0.05, 0.05, 0.06))
+    for k in range(3):  # the outside: facades with rows of dark windows, the ground, tree bark
+        m[f"facade{k}"] = Material(FACADE, _hsv(u(0, 1), u(0.0, 0.35), u(0.35, 0.9)), (0.03, 0.035, 0.045), u(2.5, 4.0),
+                                   u(0, 100))
+    m["ground"] = Material(STONE, _hsv(u(0.15, 0.35), u(0.15, 0.5), u(0.25, 0.5)), scale=u(5, 15), seed=u(0, 100))
+    m["bark"] = Material(PLAIN, _hsv(0.07, 0.5, 0.3))
     for k in range(3):
         m[f"picture{k}"] = Material(PICTURE, _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)),
                                     _hsv(u(0, 1), u(0.3, 0.8), u(0.3, 0.9)), u(2, 7), u(0, 100))
@@ -166,4 +170,9 @@ def _albedo(mat: Material, p: np.ndarray) -> np.ndarray:
         stripe = (border > 0.42)[:, None]
         w = np.sin(p[:, 0] * mat.scale) * np.sin(p[:, 1] * mat.scale)
         return np.where(stripe, alt, base) * (0.9 + 0.08 * w)[:, None]
+    if mat.kind == FACADE:  # storeys and bays of mat.scale metres, a dark window in each
+        fu = np.mod((p[:, 0] + p[:, 1]) / mat.scale, 1.0)
+        fz = np.mod(p[:, 2] / mat.scale, 1.0)
+        pane = ((fu > 0.25) & (fu < 0.75) & (fz > 0.3) & (fz < 0.8))[:, None]
+        return np.where(pane, alt, base * (0.9 + 0.1 * _hash(np.floor(p[:, 2] / mat.scale), seed=mat.seed))[:, None])
     return np.broadcast_to(base, (n, 3)).astype(np.float64)

@@ -2,6 +2,7 @@
 frame's colour, depth, positions, semantic, instance and render-entity images."""
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Optional
@@ -37,9 +38,20 @@ class Renderer:
         t[hit] = np.einsum("ij,ij->i", self.v0[tri[hit]] - origin, n) / np.einsum("ij,ij->i", dirs[hit], n)
         return tri, t
 
+    def visible(self, origin: np.ndarray, dirs: np.ndarray, dist: np.ndarray) -> np.ndarray:
+        """Whether nothing lies between each origin and the point `dist` along its unit direction (shadow rays)."""
+        occluded = self.rmi._scene.run(origin, dirs, dists=dist.astype(np.float32), query="OCCLUDED")
+        return occluded == -1
+
     def shade(self, tri: np.ndarray, pts: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """(n, 3) linear radiance of hit points `pts` on faces `tri` seen along `dirs`."""
-        m = self.mesh
+        """(n, 3) linear radiance of hit points `pts` on faces `tri` seen along `dirs`.
+
+        Inside: the light bounced around the rooms (`Layout.ambient`), darker in the corners and near the floor;
+        every point light (ceiling fixtures and lamps) with its inverse-square fall-off and the shadows of what
+        stands between; the sky through each window (a small area light at its centre: both cosines over the
+        squared distance, shadowed); the sun, where a shadow ray towards it leaves the house (its patches through
+        the windows). Outside (unlabelled geometry): the sky from above and the sun."""
+        m, lay = self.mesh, self.lay
         part = m.face_part[tri]
         n = self.normals[tri]
         flip = np.einsum("ij,ij->i", n, dirs) > 0
@@ -55,24 +67,48 @@ class Renderer:
             mat = m.materials[mi]
             albedo[sel] = _albedo(mat, local)
             emission[sel] = mat.emission
-        light = np.broadcast_to(self.lay.ambient, pts.shape).copy()
-        # cheap ambient occlusion-ish darkening near the floor / ceiling corners
-        light *= (0.75 + 0.25 * np.clip(pts[:, 2:3] / 0.5, 0, 1))
+        outside = m.part_sem[part] < 0
+        inside = ~outside
+        light = np.zeros_like(pts)
+        # bounced light, darker towards walls, corners and the floor
+        x, y, z = pts[:, 0], pts[:, 1], pts[:, 2]
+        depth_in = np.full(len(pts), -np.inf)
+        for x0, y0, x1, y1 in lay.rooms:
+            depth_in = np.maximum(depth_in, np.minimum(np.minimum(x - x0, x1 - x), np.minimum(y - y0, y1 - y)))
+        ao = (0.45 + 0.55 * (1.0 - np.exp(-np.clip(depth_in, 0.0, None) / 0.7)))
+        ao *= (0.7 + 0.3 * np.clip(z / 0.5, 0, 1)) * (0.85 + 0.15 * np.clip((lay.H - z) / 0.4, 0, 1))
+        light[inside] = lay.ambient * ao[inside, None]
+        light[outside] = lay.sky * (0.5 + 0.5 * np.clip(n[outside, 2], 0, 1))[:, None]
         origin = pts + n * 2e-3
-        for lp, lrgb in self.lay.lights:
-            L = lp - origin
+        idx_in = np.flatnonzero(inside)
+        for lp, lrgb in lay.lights:
+            L = lp - origin[idx_in]
             dist = np.linalg.norm(L, axis=1)
             L /= dist[:, None]
-            cos = np.einsum("ij,ij->i", n, L)
+            cos = np.einsum("ij,ij->i", n[idx_in], L)
             lit = cos > 0
-            occl = self.rmi._scene.run(origin[lit], L[lit], dists=(dist[lit] - 0.05).astype(np.float32), query="OCCLUDED")
-            vis = np.zeros(len(pts))
-            vis[np.nonzero(lit)[0][occl == -1]] = 1.0
-            light += lrgb * (vis * cos / np.maximum(dist ** 2, 0.25))[:, None]
-        lamp_glow = emission * np.clip(self.lay.lights[0][1].sum() / 6.0, 0.1, 2.0) if len(self.lay.lights) else emission
-        glass = np.all(emission > 0.5, axis=1)
-        lamp_glow[glass] = emission[glass]
-        return albedo * light + lamp_glow
+            k = idx_in[lit]
+            vis = self.visible(origin[k], L[lit], dist[lit] - 0.05)
+            light[k[vis]] += lrgb * (cos[lit][vis] / np.maximum(dist[lit][vis] ** 2, 0.09))[:, None]
+        for centre, normal, area in lay.windows:
+            L = centre - origin[idx_in]
+            dist = np.linalg.norm(L, axis=1)
+            L /= dist[:, None]
+            cos = np.einsum("ij,ij->i", n[idx_in], L)
+            cos_w = -(L @ normal)  # the window faces into the room
+            lit = (cos > 0) & (cos_w > 0)
+            k = idx_in[lit]
+            vis = self.visible(origin[k], L[lit], dist[lit] - 0.02)
+            w = cos[lit][vis] * cos_w[lit][vis] * area / (math.pi * np.maximum(dist[lit][vis] ** 2, area))
+            light[k[vis]] += lay.sky * w[:, None]
+        if lay.sun is not None:
+            sun_dir, sun_rgb = lay.sun
+            cos = n @ sun_dir
+            lit = np.flatnonzero(cos > 0)
+            vis = self.visible(origin[lit], np.broadcast_to(sun_dir, (len(lit), 3)), np.full(len(lit), 500.0))
+            light[lit[vis]] += sun_rgb * cos[lit[vis], None]
+        glow = emission * (1.0 if lay.lights else 0.1)
+        return albedo * light + glow
 
 
 @dataclass
@@ -97,6 +133,7 @@ def render_frame(r: Renderer, rays_cam: np.ndarray, eye: np.ndarray, R: np.ndarr
     pts = eye + d[hit] * t[hit, None]
     col = np.zeros((len(d), 3))
     col[hit] = r.shade(tri[hit], pts, d[hit]) * exposure
+    col[~hit] = r.lay.sky * exposure * (1.0 + 0.6 * np.clip(d[~hit, 2:3], 0, 1))  # the sky: no depth, no entity
     pos = np.full((len(d), 3), np.nan)
     pos[hit] = pts
     sem = np.full(len(d), -1, np.int16)
