@@ -120,8 +120,6 @@ def main(argv: list[str] | None = None) -> int:
             out = localize.build_index(load_study(args.study), args.out, args.method)
             print(f"database: {out}")
         elif args.command == "localize":
-            import json
-
             from monolib import localize  # deferred: torch
 
             results = localize.localize(args.images, args.db, args.k)
