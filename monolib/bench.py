@@ -310,8 +310,8 @@ def render_side_by_side(old: str, study: str = "quick", out: str | None = None) 
 
     repo = paths.PACKAGE.parent
     record = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "cpus": os.cpu_count(),
-              "date": time.strftime("%Y-%m-%d"), "study": study, "old": old,
-              "new": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True,
+              "date": time.strftime("%Y-%m-%d"), "study": study, "old_commit": old,
+              "new_commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True,
                                     text=True).stdout.strip() + " + working tree"}
     with tempfile.TemporaryDirectory(prefix="monolib-render-") as tmp:
         tree = Path(tmp) / "old"
@@ -328,7 +328,7 @@ def render_side_by_side(old: str, study: str = "quick", out: str | None = None) 
                 frames = sum(1 for _ in target.glob("ai_*/images/*_final_hdf5/*.color.hdf5"))
                 size = sum(f.stat().st_size for f in target.rglob("*") if f.is_file())
                 record[label] = {"seconds": round(seconds, 1), "frames": frames, "gigabytes": round(size / 1e9, 2)}
-                print(f"render {study} with the generator of {old if label == 'old' else record['new']}: "
+                print(f"render {study} with the generator of {record[label + '_commit']}: "
                       f"{seconds:.1f} s, {frames} frames, {size / 1e9:.2f} GB", flush=True)
                 shutil.rmtree(target)
         finally:
