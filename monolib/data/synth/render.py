@@ -43,6 +43,22 @@ class Renderer:
         occluded = self.rmi._scene.run(origin, dirs, dists=dist.astype(np.float32), query="OCCLUDED")
         return occluded == -1
 
+    def _lit_from(self, origin: np.ndarray, n: np.ndarray, idx: np.ndarray, point: np.ndarray, margin: float,
+                  facing: Optional[np.ndarray] = None):
+        """Of the points `idx` (offset `origin`, normals `n`), those that face `point` and see it (a shadow ray
+        stopping `margin` short of it; `facing`: and that lie in front of a window of that inward normal): their
+        indices, cosine towards the point, distance and unit direction."""
+        L = point - origin[idx]
+        dist = np.linalg.norm(L, axis=1)
+        L /= dist[:, None]
+        cos = np.einsum("ij,ij->i", n[idx], L)
+        lit = cos > 0
+        if facing is not None:
+            lit &= -(L @ facing) > 0
+        k = idx[lit]
+        vis = self.visible(origin[k], L[lit], dist[lit] - margin)
+        return k[vis], cos[lit][vis], dist[lit][vis], L[lit][vis]
+
     def shade(self, tri: np.ndarray, pts: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """(n, 3) linear radiance of hit points `pts` on faces `tri` seen along `dirs`.
 
@@ -82,25 +98,12 @@ class Renderer:
         origin = pts + n * 2e-3
         idx_in = np.flatnonzero(inside)
         for lp, lrgb in lay.lights:
-            L = lp - origin[idx_in]
-            dist = np.linalg.norm(L, axis=1)
-            L /= dist[:, None]
-            cos = np.einsum("ij,ij->i", n[idx_in], L)
-            lit = cos > 0
-            k = idx_in[lit]
-            vis = self.visible(origin[k], L[lit], dist[lit] - 0.05)
-            light[k[vis]] += lrgb * (cos[lit][vis] / np.maximum(dist[lit][vis] ** 2, 0.09))[:, None]
+            k, cos, dist, _L = self._lit_from(origin, n, idx_in, lp, 0.05)
+            light[k] += lrgb * (cos / np.maximum(dist ** 2, 0.09))[:, None]
         for centre, normal, area in lay.windows:
-            L = centre - origin[idx_in]
-            dist = np.linalg.norm(L, axis=1)
-            L /= dist[:, None]
-            cos = np.einsum("ij,ij->i", n[idx_in], L)
-            cos_w = -(L @ normal)  # the window faces into the room
-            lit = (cos > 0) & (cos_w > 0)
-            k = idx_in[lit]
-            vis = self.visible(origin[k], L[lit], dist[lit] - 0.02)
-            w = cos[lit][vis] * cos_w[lit][vis] * area / (math.pi * np.maximum(dist[lit][vis] ** 2, area))
-            light[k[vis]] += lay.sky * w[:, None]
+            k, cos, dist, L = self._lit_from(origin, n, idx_in, centre, 0.02, facing=normal)
+            w = cos * -(L @ normal) * area / (math.pi * np.maximum(dist ** 2, area))
+            light[k] += lay.sky * w[:, None]
         if lay.sun is not None:
             sun_dir, sun_rgb = lay.sun
             cos = n @ sun_dir

@@ -102,7 +102,6 @@ def _draw_items(rng: np.random.Generator, room: str, area: float, keep: float = 
     """The catalogue of a room of type `room`: (kind, dims, extra) per piece (`keep`: probability scale)."""
     items = []
     pic = 0
-    lo_d = hi_d = None
     for kind, nmin, nmax, p in ROOMS[room]:
         if kind == "chair" or rng.uniform() > p * keep:
             continue
@@ -119,12 +118,12 @@ def _draw_items(rng: np.random.Generator, room: str, area: float, keep: float = 
     return items
 
 
-def _make_annex(rng: np.random.Generator, room: str, W: float, D: float) -> Optional[dict]:
+def _make_annex(rng: np.random.Generator, room: str, W: float, D: float, H: float) -> Optional[dict]:
     """The next room, behind one wall of the main room, through an opening in it: an open-plan area (living,
     dining and kitchen areas in one space; a wide opening, the two rooms often an L) or a room behind a doorway.
     Its floor plan is in the wall's frame: along the wall from `a0` to `a1` (it may reach past the main room's
-    corner), `depth` beyond it; the opening spans `s0`-`s1` of the wall, up to `z1` (None: just below the
-    ceiling)."""
+    corner), `depth` beyond it; the opening spans `s0`-`s1` of the wall, up to `z1` (open plan: 0.3 m below the
+    ceiling of height `H`)."""
     partners, open_plan = ANNEX[room]
     if rng.uniform() > (0.5 if room == "bathroom" else 0.9):
         return None
@@ -133,7 +132,7 @@ def _make_annex(rng: np.random.Generator, room: str, W: float, D: float) -> Opti
     other = partners[int(rng.integers(len(partners)))]
     if open_plan:
         width = float(rng.uniform(1.8, max(1.9, min(4.5, L - 0.8))))
-        z1 = None
+        z1 = H - 0.3
     else:
         width, z1 = float(rng.uniform(0.9, 1.3)), 2.1
     s0 = float(rng.uniform(0.35, L - width - 0.35))
@@ -154,19 +153,25 @@ def annex_frame(annex: dict, W: float, D: float) -> tuple[float, np.ndarray]:
     return yaw, o + t * annex["a1"] - nrm * WALL_T
 
 
+def annex_box(annex: dict, W: float, D: float, pad: float = 0.0) -> tuple[float, float, float, float]:
+    """(xmin, ymin, xmax, ymax) in the world of the annex's floor plan, its own walls `pad` thick (its wall 0 is
+    the main room's)."""
+    yaw, origin = annex_frame(annex, W, D)
+    R = _rot(yaw)[:2, :2]
+    L, Da = annex["a1"] - annex["a0"], annex["depth"]
+    corners = np.array([origin + R @ np.array(c) for c in ((-pad, 0), (L + pad, 0), (-pad, Da + pad), (L + pad, Da + pad))])
+    return (float(corners[:, 0].min()), float(corners[:, 1].min()), float(corners[:, 0].max()),
+            float(corners[:, 1].max()))
+
+
 def house_box(fam: "Family") -> tuple[float, float, float, float]:
     """(xmin, ymin, xmax, ymax) of the main room and its annex, walls included."""
     W, D, _H = fam.size
-    xs, ys = [-WALL_T, W + WALL_T], [-WALL_T, D + WALL_T]
-    if fam.annex is not None:
-        yaw, origin = annex_frame(fam.annex, W, D)
-        R = _rot(yaw)[:2, :2]
-        L, Da = fam.annex["a1"] - fam.annex["a0"], fam.annex["depth"]
-        for u, v in ((-WALL_T, 0), (L + WALL_T, 0), (-WALL_T, Da + WALL_T), (L + WALL_T, Da + WALL_T)):
-            x, y = origin + R @ np.array([u, v])
-            xs.append(float(x))
-            ys.append(float(y))
-    return min(xs), min(ys), max(xs), max(ys)
+    box = (-WALL_T, -WALL_T, W + WALL_T, D + WALL_T)
+    if fam.annex is None:
+        return box
+    a = annex_box(fam.annex, W, D, WALL_T)
+    return min(box[0], a[0]), min(box[1], a[1]), max(box[2], a[2]), max(box[3], a[3])
 
 
 def _make_outside(rng: np.random.Generator, box: tuple, ground: float) -> list:
@@ -216,7 +221,7 @@ def make_family(seed: int, index: int, room: str) -> Family:
                  skirting=bool(rng.uniform() < 0.35),
                  pendant=float(rng.uniform(0.3, 0.9)) if rng.uniform() < 0.35 else 0.0,
                  clutter=float(rng.uniform(0.2, 0.8)))
-    fam.annex = _make_annex(rng, room, W, D)
+    fam.annex = _make_annex(rng, room, W, D, H)
     if fam.annex is not None:
         a = fam.annex
         a["items"] = _draw_items(rng, a["room"], (a["a1"] - a["a0"]) * a["depth"], keep=0.45)
@@ -357,8 +362,7 @@ def _place_annex(draft: "_Draft", fam: Family, orng: np.random.Generator) -> Opt
     L, Da = a["a1"] - a["a0"], a["depth"]
     sub = _Draft(L, Da, draft.H, draft.rng)
     u0, u1 = a["a1"] - a["s1"], a["a1"] - a["s0"]
-    z1 = a["z1"] if a["z1"] is not None else draft.H - 0.3
-    sub.openings.append((0, u0, u1, 0.0, z1, "opening"))
+    sub.openings.append((0, u0, u1, 0.0, a["z1"], "opening"))
     sub.wall_used[0].append((u0, u1))
     sub.rects.append((u0 - 0.1, 0.0, u1 + 0.1, 1.0))  # the way through stays free
     if a["window"] and L > 2.0:
@@ -374,9 +378,7 @@ def _place_annex(draft: "_Draft", fam: Family, orng: np.random.Generator) -> Opt
         it.x, it.y = (float(v) for v in origin + R @ np.array([it.x, it.y]))
         it.yaw += yaw
         draft.items.append(it)
-    corners = np.array([origin + R @ np.array(c) for c in ((0, 0), (L, 0), (0, Da), (L, Da))])
-    box = (float(corners[:, 0].min()), float(corners[:, 1].min()), float(corners[:, 0].max()), float(corners[:, 1].max()))
-    return dict(a, yaw=yaw, origin=origin, openings=sub.openings, box=box, W=L, D=Da)
+    return dict(a, yaw=yaw, origin=origin, openings=sub.openings, box=annex_box(a, draft.W, draft.D), W=L, D=Da)
 
 
 def _place_openings(draft: _Draft, fam: Family, orng: np.random.Generator) -> None:
@@ -386,9 +388,8 @@ def _place_openings(draft: _Draft, fam: Family, orng: np.random.Generator) -> No
     if fam.annex is not None:
         a = fam.annex
         w = a["wall"]
-        z1 = a["z1"] if a["z1"] is not None else H - 0.3
         draft.wall_used[w].append((a["s0"], a["s1"]))
-        draft.openings.append((w, a["s0"], a["s1"], 0.0, z1, "opening"))
+        draft.openings.append((w, a["s0"], a["s1"], 0.0, a["z1"], "opening"))
         o, t, nrm, _L = _wall_frame(w, W, D)
         c = o + t * (a["s0"] + a["s1"]) / 2 + nrm * 0.5
         draft.rects.append(_footprint(c[0], c[1], w * math.pi / 2, a["s1"] - a["s0"] + 0.2, 1.0))
