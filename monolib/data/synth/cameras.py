@@ -65,14 +65,14 @@ def view_score(r: Renderer, eye: np.ndarray, R: np.ndarray, probe: np.ndarray) -
 
 
 def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int, r: Renderer) -> list:
-    """1-2 scenes; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres).
+    """1 scene for fewer than 12 frames, else 2-3; each: (eyes (n,3) metres, R (n,3,3), look-at (n,3) metres).
 
     As Hypersim's: each scene starts at a viewpoint an artist would choose (standing height, 1.5-1.7 m, near the
     edge of the free floor, looking across the room towards its far side: the best of 12 such views by
     `view_score`), then takes random-walk steps: the camera up to 1.5 m horizontally and 0.25 m vertically, its
     look-at point up to 3 m, one of 8 candidates drawn in proportion to its `view_score` each time (pitch within -30..+12 degrees)."""
     rng = np.random.default_rng([seed, 32452843, setting_index])
-    n_scenes = 1 if n_frames < 12 else int(rng.integers(1, 3))
+    n_scenes = 1 if n_frames < 12 else int(rng.integers(2, 4))  # several trajectories, as in Hypersim
     counts = [n_frames // n_scenes + (1 if k < n_frames % n_scenes else 0) for k in range(n_scenes)]
     gx, gy, free = _free_floor(lay)
     fi, fj = np.nonzero(free)
@@ -134,7 +134,7 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int,
     return scenes
 
 
-def setting_exposure(r: Renderer, scenes: list, compensation: float = 0.5, target: float = 0.5) -> float:
+def setting_exposure(r: Renderer, scenes: list, compensation: float = 0.7, target: float = 0.5) -> float:
     """The exposure an artist sets for a whole setting (Hypersim: no auto-exposure, one exposure per scene): the
     median radiance of the first view of each trajectory (a 32x24 render) brought `compensation` of the way (in log)
     to `target`, so that dark rooms stay darker than bright ones."""
@@ -155,9 +155,9 @@ def setting_exposure(r: Renderer, scenes: list, compensation: float = 0.5, targe
 
 
 def scene_exposures(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Exposure of each frame of one scene: one level per scene (x0.55-1.8) and a 2% flicker, steady along the
+    """Exposure of each frame of one scene: one level per scene (x0.45-2.2) and a 2% flicker, steady along the
     trajectory as in Hypersim's renders."""
-    return np.exp(rng.uniform(np.log(0.55), np.log(1.8)) + rng.normal(0, 0.02, n))
+    return np.exp(rng.uniform(np.log(0.45), np.log(2.2)) + rng.normal(0, 0.02, n))
 
 
 def _camera_M(s: dict, width: int, height: int) -> np.ndarray:

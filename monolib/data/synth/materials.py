@@ -36,12 +36,12 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
     """
     u = rng.uniform
 
-    def paint(sat_hi=0.7, v=(0.2, 0.95)) -> Material:
+    def paint(sat_hi=0.8, v=(0.12, 0.95)) -> Material:
         # a third of the paints are near-neutral (white, grey, beige), the rest carry a colour
         sat = u(0.0, 0.08) if u() < 0.33 else u(0.1, sat_hi)
         return Material(PAINT, _hsv(u(0, 1), sat, u(*v)), seed=u(0, 100))
 
-    def wood(v=(0.15, 0.9)) -> Material:
+    def wood(v=(0.1, 0.9)) -> Material:
         val = u(*v)
         return Material(WOOD, _hsv(u(0.03, 0.11), u(0.3, 0.75), val), _hsv(u(0.03, 0.1), u(0.45, 0.85), val * 0.55),
                         u(40, 110), u(0, 100))
@@ -50,7 +50,7 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
         return Material(FABRIC, _hsv(u(0, 1), u(0.05, 0.6), u(0.25, 0.85)), scale=u(*scale), seed=u(0, 100))
 
     def tiles() -> Material:
-        h, v = u(0, 1), u(0.25, 0.95)
+        h, v = u(0, 1), u(0.15, 0.95)
         return Material(TILES, _hsv(h, u(0.0, 0.4), v), _hsv(h, 0.05, v * 0.55), u(0.2, 0.5), u(0, 100))
 
     def rug() -> Material:

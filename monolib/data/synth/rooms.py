@@ -87,6 +87,7 @@ class Family:
     skirting: bool = False  # skirting boards along the walls (NYU40 otherstructure)
     pendant: float = 0.0  # how far the ceiling lamps hang below the ceiling (m; 0: flush)
     clutter: float = 0.6  # how many small props stand on the family's surfaces (0..1)
+    recessed: bool = False  # downlights set into the ceiling: light without a lamp to see
     annex: Optional[dict] = None  # the next room behind one wall (`_make_annex`), shared by the family's settings
     outside: list = field(default_factory=list)  # ("ground", z), then ("building", x, y, w, d, top, k), ("tree", x, y, r, h)
 
@@ -210,7 +211,7 @@ def make_family(seed: int, index: int, room: str) -> Family:
     H = float(np.clip(rng.uniform(2.5, 3.0) + 0.06 * (max(W, D) - 5.0), 2.5, 3.6))
     mats = _family_materials(rng, room)
     temp = float(rng.uniform(0.2, 0.8))  # light colour temperature of the family's fixtures (0 warm .. 1 cool)
-    items = _draw_items(rng, room, W * D, keep=0.65)
+    items = _draw_items(rng, room, W * D, keep=0.6)
     chair_dims = tuple(float(rng.uniform(a, b)) for a, b in zip(*CATALOGUE["chair"][2]))
     items.append(("chair", chair_dims, {}))  # the family's chair model (the layout decides how many)
     wall_key = ["wall"] * 4
@@ -221,6 +222,7 @@ def make_family(seed: int, index: int, room: str) -> Family:
                  skirting=bool(rng.uniform() < 0.35),
                  pendant=float(rng.uniform(0.3, 0.9)) if rng.uniform() < 0.35 else 0.0,
                  clutter=float(rng.uniform(0.2, 0.8)))
+    fam.recessed = bool(rng.uniform() < 0.4)
     fam.annex = _make_annex(rng, room, W, D, H)
     if fam.annex is not None:
         a = fam.annex
@@ -594,8 +596,8 @@ def _place_chairs(draft: _Draft, chair_dims: tuple) -> None:
 def _place_lights(lay: Layout, draft: _Draft, fam: Family, seed: int, dim: bool) -> None:
     """The light of one setting, into `lay`: daylight (the sky through every window, sampled at its centre, and on
     a sunny day the sun, whose patches fall through the windows; dusk in a dim setting), the family's ceiling
-    fixtures (same positions and colour in every setting; their lamps are items; all on in a bright setting, one
-    weak one in a dim setting), one fixture in the annex, the floor, table and bedside lamps (some switched on),
+    fixtures (same positions and colour in every setting; their lamps are items unless the family's are recessed
+    downlights; all on in a bright setting, one weak one in a dim setting), one fixture in the annex, the floor, table and bedside lamps (some switched on),
     and the light bounced off the walls (tinted by their paint)."""
     W, D, H = draft.W, draft.D, draft.H
     lrng = np.random.default_rng([seed, 7919, fam.index, 2])
@@ -608,8 +610,11 @@ def _place_lights(lay: Layout, draft: _Draft, fam: Family, seed: int, dim: bool)
         pos = np.array([lrng.uniform(0.2, 0.8) * W, lrng.uniform(0.2, 0.8) * D, H - 0.25 - fam.pendant])
         power = lrng.uniform(3.0, 5.0)
         if k < n_on:
-            lay.lights.append((pos + np.array([0.0, 0.0, -0.1]), rgb * level * power))
+            bulb = pos + np.array([0.0, 0.0, -0.1]) if not fam.recessed else np.array([pos[0], pos[1], H - 0.05])
+            lay.lights.append((bulb, rgb * level * power))
             flux += level * power
+        if fam.recessed:
+            continue
         drop = fam.pendant  # a pendant hangs on a cord into the view; a flush fixture stays at the ceiling
         draft.items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.2 - drop, 0.2, 0.14), "shade"),
                                                                 (_cyl(0, 0, -0.06 - drop, 0.01, 0.06 + drop),
@@ -619,13 +624,14 @@ def _place_lights(lay: Layout, draft: _Draft, fam: Family, seed: int, dim: bool)
     if lay.annex is not None:
         a = lay.annex
         x0, y0, x1, y1 = a["box"]
-        pos = np.array([(x0 + x1) / 2, (y0 + y1) / 2, H - 0.35])
+        pos = np.array([(x0 + x1) / 2, (y0 + y1) / 2, H - (0.05 if fam.recessed else 0.35)])
         if not dim or rng.uniform() < 0.5:
             power = lrng.uniform(3.0, 5.0) * level
             lay.lights.append((pos, rgb * power))
             flux += power
-        draft.items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.15, 0.18, 0.1), "shade")])],
-                                0.3, 0.3, 0.1, float(pos[0]), float(pos[1]), 0.0, H))
+        if not fam.recessed:
+            draft.items.append(Item("ceiling_lamp", [Obj(ID["lamp"], [(_cyl(0, 0, -0.15, 0.18, 0.1), "shade")])],
+                                    0.3, 0.3, 0.1, float(pos[0]), float(pos[1]), 0.0, H))
         area += (x1 - x0) * (y1 - y0)
     warm = np.array([1.0, 0.78, 0.5])
     for it in draft.items:  # lamps: on in most evenings, in some days
