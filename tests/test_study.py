@@ -52,18 +52,19 @@ def test_smoke_study_writes_every_table_and_figure(smoke_study):
 # that wrote the notebooks' outputs before; delta<1.25 of depth_b 0.587 and 0.603). The bands hold three queries of
 # 24 (12.5 points) and 0.05 of a perception metric: a broken pipeline (chance, a constant depth) falls outside.
 # Every entry re-measured 2026-12-02 (same machine) when the mini-Hypersim took generator version 5 (issue 26: rooms
-# of real size, the outside through the windows, Hypersim's camera walk and light): other frames, so other numbers.
+# of real size, the outside through the windows, Hypersim's camera walk and light; the smoke segmentation trains 3
+# epochs instead of 1, as in 1 epoch it stayed below the share of the commonest class): other frames, other numbers.
 SMOKE_TABLES = {  # (table, scenario, threshold, k): mean (%)
     **{("table1_recall", sc, t, k): v for (sc, t, k), v in {
-        ("s1", 0, 1): 70.8, ("s1", 0, 10): 100.0, ("s1", 2, 1): 62.5, ("s1", 2, 10): 95.8, ("s1", math.inf, 1): 54.2,
-        ("s1", math.inf, 10): 87.5, ("s2", 2, 1): 62.5, ("s2", 2, 10): 91.7, ("s3", 2, 1): 70.8,
-        ("s3", 2, 10): 95.8, ("s4", 2, 1): 70.8, ("s4", 2, 10): 95.8}.items()},
+        ("s1", 0, 1): 75.0, ("s1", 0, 10): 87.5, ("s1", 2, 1): 62.5, ("s1", 2, 10): 95.8, ("s1", math.inf, 1): 45.8,
+        ("s1", math.inf, 10): 100.0, ("s2", 2, 1): 95.8, ("s2", 2, 10): 100.0, ("s3", 2, 1): 95.8,
+        ("s3", 2, 10): 100.0, ("s4", 2, 1): 95.8, ("s4", 2, 10): 100.0}.items()},
     **{("table2_precision", sc, t, k): v for (sc, t, k), v in {
-        ("s1", 0, 2): 72.9, ("s1", 2, 2): 35.4, ("s1", math.inf, 2): 35.4, ("s2", 2, 2): 62.5, ("s3", 2, 2): 64.6,
-        ("s4", 2, 2): 64.6}.items()},
+        ("s1", 0, 2): 56.2, ("s1", 2, 2): 33.3, ("s1", math.inf, 2): 50.0, ("s2", 2, 2): 81.2, ("s3", 2, 2): 75.0,
+        ("s4", 2, 2): 75.0}.items()},
 }
-SMOKE_PERCEPTION = {("deeplab", "pixel_accuracy"): 0.436, ("depth_a", "abs_rel"): 0.373, ("depth_a", "delta1"): 0.293,
-                    ("depth_b", "abs_rel"): 0.508, ("depth_b", "delta1"): 0.359}
+SMOKE_PERCEPTION = {("deeplab", "pixel_accuracy"): 0.517, ("depth_a", "abs_rel"): 0.388, ("depth_a", "delta1"): 0.333,
+                    ("depth_b", "abs_rel"): 0.379, ("depth_b", "delta1"): 0.344}
 
 
 def test_smoke_numbers_within_their_cross_machine_bands(smoke_study):
