@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render clean-runs
+.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-imagenet clean-runs
 
 install: $(STAMP)
 
@@ -72,6 +72,15 @@ bench-grid: install
 # the dataset stage of quick rendered by the generator before version 5 (c736e94) and by this one, side by side
 bench-render: install
 	$(VENV)/bin/monolib bench --render-vs c736e94 --study quick --out figures/render_bench.json
+
+# what a localizer of each method of the quick study costs (run `make study` first): database bytes per frame, ms per
+# query image end to end, recall@1, side by side
+bench-localizers: install
+	$(VENV)/bin/monolib bench --localizers --study quick --out figures/localizers.json
+
+# the measurements behind the ImageNet methods' choices (VLAD whitening; the fine-tuning's output and learning rate)
+bench-imagenet: install
+	$(VENV)/bin/monolib bench --imagenet-choices --study quick --out figures/imagenet_choices.json
 
 clean-runs:
 	rm -rf runs/

@@ -12,7 +12,13 @@
   (`perception.predict_frames`; untrained weights, the model's input at the measured resolution);
 - kNN over 600, 100k and 1M 64-d vectors: torch (cdist + topk) against a faiss flat index;
 - `render_side_by_side` (`monolib bench --render-vs COMMIT`, `make bench-render`): the dataset stage of a study
-  rendered by the generator of another commit and by this one, one after the other in one run.
+  rendered by the generator of another commit and by this one, one after the other in one run;
+- `localizer_costs` (`monolib bench --localizers`, `make bench-localizers`): what a localizer of each method of a
+  finished study costs, side by side: database bytes per frame, end-to-end milliseconds per query image
+  (perception, graph, embedding, search), and recall@1;
+- `imagenet_choices` (`monolib bench --imagenet-choices`, `make bench-imagenet`): `imagenet_vlad` as it is against
+  PCA-whitened on the training split, and `imagenet_triplet`'s output and learning rate, recall@1 on both protocols
+  (what decided `pretrained.VLAD_WHITEN`, `TRIPLET_OUT` and `TRIPLET_LR_SCALE`).
 """
 from __future__ import annotations
 
@@ -24,16 +30,18 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib import io, paths
-from monolib.data import synth
+from monolib import io, localize, methods, paths
+from monolib.data import selection, stage as dataset, synth
 from monolib.data.hypersim import Camera, HypersimDataset
 from monolib.device import device
 from monolib.graphs.build import at_threshold, build_scene_graph, complete_graph, scene_nodes
 from monolib.io import write_json
 from monolib.localize import Localizer
 from monolib.params import load_study
-from monolib.perception import depth as depth_net, segmentation, stage as perception
-from monolib.retrieval import gcn
+from monolib.perception import depth as depth_net, features, segmentation, stage as perception
+from monolib.report.results import collect
+from monolib.retrieval import evaluate, gcn, pretrained
+from monolib.retrieval.cell import run_cell
 
 
 def _time(fn, repeat: int) -> float:
@@ -338,3 +346,159 @@ def render_side_by_side(old: str, study: str = "quick", out: str | None = None) 
     if out:
         write_json(out, record)
     return record
+
+
+def _written(record: dict, out: str | None, table) -> dict:
+    """`record`, written to `out` (JSON) and beside it as the Markdown `table(record)` (the README's block)."""
+    if out:
+        write_json(out, record)
+        io.write_text(Path(out).with_suffix(".md"), table(record))
+        print(f"written: {out} and {Path(out).with_suffix('.md')}")
+    return record
+
+
+def localizer_costs(study_name: str = "quick", queries: int = 40, out: str | None = None) -> dict:
+    """What a localizer of each method of a finished study costs, side by side in one run: `monolib index` of the
+    method's best cell into a temporary database, then `queries` test frames' RGB through `Localizer.stages` (the
+    whole per-image pipeline of `monolib localize`: for a graph method segmentation, depth, graph and encoder; for
+    an image method its descriptor) and a k-nearest search over the database. Per method: the database's bytes per
+    frame (its embedding row) and in all (embeddings + the encoder's state), milliseconds per query by stage
+    (first query a warm-up, not counted), and recall@1 of the ``paper`` protocol: the database cell's, and the mean
+    over seeds of its scenario and threshold (`figures/results.csv` of the study's run)."""
+    import os
+    import tempfile
+
+
+    study = load_study(study_name)
+    torch.set_num_threads(study.threads)
+    test = selection.select_frames(study, dataset.open_dataset(study), study.gcn.val_settings).test
+    step = max(1, len(test) // queries)
+    frames = test[::step][:queries]
+    results = collect(study.name)
+    record = {"study": study.name, "machine": f"{platform.machine()} {platform.processor()}".strip(),
+              "cpus": os.cpu_count(), "torch_threads": study.threads, "device": device_name(device()),
+              "date": time.strftime("%Y-%m-%d"), "queries": len(frames), "methods": {}}
+    names = study.graph_methods() + [m for m in study.methods if methods.kind(m, study) == "image"]
+    print(f"localizer costs, study {study.name}, {len(frames)} query images of its test split, {study.threads} torch "
+          f"thread(s), {record['device']} ({record['machine']}, {record['cpus']} cpus, {record['date']})")
+    for method in names:
+        with tempfile.TemporaryDirectory() as tmp:
+            t = time.perf_counter()
+            db = localize.build_index(study, Path(tmp) / "db", method)
+            index_s = time.perf_counter() - t
+            meta, table, emb = localize.read_database(db)
+            loc = localize.Localizer.open(db)
+            timings: dict = {}
+            for f in frames[:1] + frames:  # the first: warm-up
+                z = loc.stages(f.rgb, timings)
+                t = time.perf_counter()
+                torch.topk(torch.cdist(z[None], loc.embeddings), 10, largest=False)
+                timings.setdefault("search", []).append(time.perf_counter() - t)
+            state_bytes = (Path(db) / "encoder.pt").stat().st_size
+        ms = {k: round(1000 * float(np.mean(v[1:])), 2) for k, v in timings.items()}
+        same = results[(results.method == method) & (results.scenario == meta["scenario"])
+                       & (results.threshold.astype(float) == float(meta["threshold"])) & (results.protocol == "paper")
+                       & (results.metric == "recall") & (results.k == 1)]
+        row = {"kind": meta.get("kind", "graph"), "scenario": meta["scenario"], "threshold": meta["threshold"],
+               "dimensions": int(emb.shape[1]), "bytes_per_frame": int(emb[0].nbytes),
+               "database_bytes": int(emb.nbytes), "encoder_state_bytes": int(state_bytes), "frames": int(len(emb)),
+               "ms_per_query": ms, "ms_per_query_total": round(sum(ms.values()), 2), "index_s": round(index_s, 1),
+               "recall@1_database_cell": round(float(meta["cell_recall@1"]), 2),
+               "recall@1_mean_over_seeds": round(float(same["value"].mean()), 2) if len(same) else None,
+               "seeds": int(same["seed"].nunique()) if len(same) else 0}
+        record["methods"][method] = row
+        print(f"  {method:<17} {row['kind']:<5} {meta['scenario']}@{meta['threshold']}: {row['dimensions']:>6}-d, "
+              f"{row['bytes_per_frame']:>7,} B/frame, {row['ms_per_query_total']:8.1f} ms/query ("
+              + ", ".join(f"{k} {v:.1f}" for k, v in ms.items()) + f"), recall@1 {row['recall@1_mean_over_seeds']} "
+              f"(mean of {row['seeds']} seeds; the database's cell {row['recall@1_database_cell']})")
+    return _written(record, out, localizer_table)
+
+
+def localizer_table(record: dict) -> str:
+    """The README's table of `localizer_costs`' record: one row per method."""
+    lines = [f"**What a localizer costs** (`make bench-localizers`, study `{record['study']}`: {record['queries']} query "
+             f"images of its test split, {record['torch_threads']} torch thread(s), {record['device']}, "
+             f"{record['machine']}, {record['cpus']} cpus, {record['date']}). Database: the method's embedding of each "
+             f"of the study's test frames (float32), beside the encoder's state it needs (weights, a vocabulary). "
+             f"Milliseconds per query image, end to end: perception (segmentation, depth), graph, embedding (the "
+             f"encoder, or an image method's whole descriptor), search (k-nearest over the database). Recall@1: "
+             f"`paper` protocol, the mean over seeds of the database cell's scenario and threshold.", "",
+             "| method | data | dimensions | bytes / frame | encoder state | ms / query | of which | recall@1 |",
+             "|---|---|---:|---:|---:|---:|---|---:|"]
+    for method, r in record["methods"].items():
+        data = "RGB only" if r["kind"] == "image" else f"{r['scenario']} at {r['threshold']} m"
+        parts = ", ".join(f"{k} {v:.1f}" for k, v in r["ms_per_query"].items())
+        recall = "" if r["recall@1_mean_over_seeds"] is None else f"{r['recall@1_mean_over_seeds']:.1f}"
+        lines.append(f"| `{method}` | {data} | {r['dimensions']:,} | {r['bytes_per_frame']:,} | "
+                     f"{r['encoder_state_bytes'] / 1e6:.2f} MB | {r['ms_per_query_total']:.1f} | {parts} | {recall} |")
+    return "\n".join(lines) + "\n"
+
+
+def imagenet_choices(study_name: str = "quick", seeds=(0, 1), dims=(None, 128, 256, 512),
+                     triplet=((64, 1.0), (None, 1.0), (64, 0.1), (None, 0.1), (None, 0.01)), out: str | None = None) -> dict:
+    """The measurements behind two choices of `monolib.retrieval.pretrained`, recall@1 of both protocols on the
+    study's test split (`evaluate.evaluate_protocols`, the cells' evaluation):
+
+    - `imagenet_vlad` without and with PCA whitening learnt on the training split (`VLAD_WHITEN`), per seed;
+    - `imagenet_triplet`'s output (a linear layer to 64 dimensions, or the GeM vector L2-normalised) and learning
+      rate (the GCN's times a scale: `TRIPLET_OUT`, `TRIPLET_LR_SCALE`), seed 0, each a whole cell
+      (`run_cell` into a temporary folder)."""
+    import math
+    import tempfile
+
+
+    study = load_study(study_name)
+    torch.set_num_threads(study.threads)
+    sel = selection.select_frames(study, dataset.open_dataset(study), study.gcn.val_settings)
+    train = np.concatenate([features.load(study, sel.train), features.load(study, sel.val)])
+    test = features.load(study, sel.test)
+    _, head = features.networks()
+    keys, settings = [f.key for f in sel.test], [f.setting for f in sel.test]
+    record = {"study": study.name, "machine": f"{platform.machine()} {platform.processor()}".strip(),
+              "date": time.strftime("%Y-%m-%d"), "vlad_whitening": [], "triplet": []}
+    for seed in seeds:
+        for d in dims:
+            t = time.perf_counter()
+            emb, _, _ = pretrained.vlad_embed(train, test, head, seed, whiten_dims=d)
+            r = evaluate.evaluate_protocols(emb, keys, settings, study.protocol, seed)
+            row = {"seed": seed, "whitened_dims": d, "dimensions": int(emb.shape[1]),
+                   **{f"recall@1_{p}": round(float(v.metrics["recall@1"]), 1) for p, v in r.items()},
+                   "seconds": round(time.perf_counter() - t, 1)}
+            record["vlad_whitening"].append(row)
+            print(f"imagenet_vlad seed {seed}, whitened to {d or 'none (as it is)'}: {row['dimensions']}-d, "
+                  + ", ".join(f"{k} {v}" for k, v in row.items() if k.startswith("recall")), flush=True)
+    chosen = (pretrained.TRIPLET_OUT, pretrained.TRIPLET_LR_SCALE)
+    try:
+        for out_dims, scale in triplet:
+            pretrained.TRIPLET_OUT, pretrained.TRIPLET_LR_SCALE = out_dims, scale
+            with tempfile.TemporaryDirectory() as tmp:
+                t = time.perf_counter()
+                c = run_cell(study, "imagenet_triplet", "rgb", math.inf, 0, out_dir=tmp, force=True)
+            row = {"seed": 0, "output": f"linear {out_dims}" if out_dims else "GeM, L2 (no projection)",
+                   "lr": study.gcn.lr * scale, "best_epoch": c["best_epoch"], "epochs_run": c["epochs_run"],
+                   **{f"recall@1_{p}": round(float(m["recall@1"]), 1) for p, m in c["metrics"].items()},
+                   "seconds": round(time.perf_counter() - t, 1), "chosen": (out_dims, scale) == chosen}
+            record["triplet"].append(row)
+            print(f"imagenet_triplet, output {row['output']}, lr {row['lr']:g}: best epoch {row['best_epoch']} of "
+                  f"{row['epochs_run']}, " + ", ".join(f"{k} {v}" for k, v in row.items() if k.startswith("recall")),
+                  flush=True)
+    finally:
+        pretrained.TRIPLET_OUT, pretrained.TRIPLET_LR_SCALE = chosen
+    return _written(record, out, imagenet_choices_table)
+
+
+def imagenet_choices_table(record: dict) -> str:
+    protos = [k for k in record["vlad_whitening"][0] if k.startswith("recall@1_")] if record["vlad_whitening"] else []
+    head = " | ".join(p.replace("recall@1_", "recall@1 ") for p in protos)
+    lines = [f"**Choices of the ImageNet methods** (`monolib bench --imagenet-choices`, study `{record['study']}`, "
+             f"{record['machine']}, {record['date']}; recall@1 on the test split, both protocols).", "",
+             f"| imagenet_vlad | seed | dimensions | {head} |", "|---|---:|---:|" + "---:|" * len(protos)]
+    for r in record["vlad_whitening"]:
+        what = f"PCA-whitened to {r['whitened_dims']}" if r["whitened_dims"] else "as it is (chosen)"
+        lines.append(f"| {what} | {r['seed']} | {r['dimensions']:,} | " + " | ".join(f"{r[p]:.1f}" for p in protos) + " |")
+    lines += ["", f"| imagenet_triplet (seed 0) | learning rate | best epoch / run | {head} |",
+              "|---|---:|---:|" + "---:|" * len(protos)]
+    for r in record["triplet"]:
+        lines.append(f"| {r['output']}{' (chosen)' if r['chosen'] else ''} | {r['lr']:g} | {r['best_epoch']} / "
+                     f"{r['epochs_run']} | " + " | ".join(f"{r[p]:.1f}" for p in protos) + " |")
+    return "\n".join(lines) + "\n"

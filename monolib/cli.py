@@ -48,8 +48,10 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("index", help="store the embeddings of a study's test frames as a localization database")
     p.add_argument("study")
     p.add_argument("--out", required=True, help="database folder")
-    p.add_argument("--method", default=None, help="graph method of the study (gcn or a variant) whose best "
-                   "predicted-input cell encodes (default: any); another name is an error")
+    p.add_argument("--method", default=None, help="method of the study whose best cell encodes: a graph "
+                   "method (gcn or a variant; its best predicted-input cell; default: any) or an image method "
+                   "(color_hist, orb_bow, image_triplet, imagenet_gem, imagenet_vlad, imagenet_triplet); another "
+                   "name is an error")
     p = sub.add_parser("localize", help="find the setting of RGB images (PNG/JPEG) in a database")
     p.add_argument("images", nargs="+")
     p.add_argument("--db", required=True)
@@ -63,6 +65,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="also write the figures as JSON (e.g. figures/bench.json)")
     p.add_argument("--render-vs", default=None, metavar="COMMIT", help="instead: the study's dataset stage "
                    "rendered by the generator of COMMIT and by this checkout's, side by side (minutes)")
+    p.add_argument("--localizers", action="store_true", help="instead: a localizer of each method of the finished "
+                   "--study, side by side: database bytes per frame, ms per query image, recall@1 (minutes)")
+    p.add_argument("--imagenet-choices", action="store_true", help="instead: imagenet_vlad of --study with and "
+                   "without PCA whitening, imagenet_triplet's output and learning rate; recall@1 on both protocols "
+                   "(about 10 minutes)")
     p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
                    "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
     args = parser.parse_args(argv)
@@ -129,6 +136,14 @@ def main(argv: list[str] | None = None) -> int:
                 from monolib import bench  # deferred: torch
 
                 bench.render_side_by_side(args.render_vs, args.study, args.out)
+            elif args.imagenet_choices:
+                from monolib import bench  # deferred: torch
+
+                bench.imagenet_choices(args.study, out=args.out)
+            elif args.localizers:
+                from monolib import bench  # deferred: torch
+
+                bench.localizer_costs(args.study, out=args.out)
             elif args.grid:
                 from monolib.study import scaling  # deferred: torch
 

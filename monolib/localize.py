@@ -3,8 +3,10 @@
 `monolib index STUDY --out DB` embeds the study's test frames with the encoder of one finished cell (by default the
 best cell whose scenario uses predicted depth and predicted semantics, since a new image has neither) and stores
 `embeddings.npy`, `frames.csv` and `meta.json` (study, cell, and the tags of the perception models) in DB.
-`monolib localize IMAGE... --db DB` runs segmentation, depth, graph and encoder on each image and prints the
-nearest settings. A new image is centre-cropped to 4:3, resized to the study's resolution and treated as a
+`--method` names a graph method, or an image method (`monolib.methods`: colour histogram, ORB, the CNNs, the
+ImageNet descriptors), whose best cell's descriptor (and its vocabulary or weights) then makes the database.
+`monolib localize IMAGE... --db DB` runs segmentation, depth, graph and encoder on each image (an image method:
+its descriptor alone) and prints the nearest settings. A new image is centre-cropped to 4:3, resized to the study's resolution and treated as a
 Hypersim canonical camera (60 degree horizontal field of view).
 
 Every bad input is one `LocalizeError` naming the file or option and what was expected (the command prints it as one
@@ -23,7 +25,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from monolib import paths
+from monolib import methods, paths
+from monolib.data import selection, stage as dataset
 from monolib.data.hypersim import Camera
 from monolib.device import device
 from monolib.graphs import build as graph, stage as scenegraphs
@@ -32,7 +35,7 @@ from monolib.io import atomic_path, read_json, save_torch, write_json, write_tex
 from monolib.params import PAPER, Study, load_study
 from monolib.perception import depth as depth_mod, segmentation as seg_mod, stage as perception
 from monolib.report.results import cell_metrics
-from monolib.retrieval import gcn
+from monolib.retrieval import baselines, gcn, pretrained
 
 
 class LocalizeError(RuntimeError):
@@ -62,34 +65,72 @@ def to_study_frame(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     return cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
 
 
+def _image_method(study: Study, method: str | None) -> bool:
+    return method is not None and method in study.methods and methods.kind(method, study) == "image"
+
+
 def pick_cell(study: Study, method: str | None = None) -> dict:
     """The finished graph-method cell (of `method`, or of any) with the best recall@1 (``paper`` protocol) among
-    scenarios with predicted depth and predicted semantics (what a new image has)."""
-    if method is not None and method not in study.graph_methods():
-        raise LocalizeError(f"{study.path}: --method {method}: not a graph method of study {study.name}; expected one "
-                            f"of {', '.join(study.graph_methods())}")
+    scenarios with predicted depth and predicted semantics (what a new image has); for an image method, its best
+    cell (with its ``model.pt`` where the method learns something)."""
+    image = _image_method(study, method)
+    if method is not None and not image and method not in study.graph_methods():
+        known = study.graph_methods() + [m for m in study.methods if methods.kind(m, study) == "image"]
+        raise LocalizeError(f"{study.path}: --method {method}: not a method of study {study.name}; expected one "
+                            f"of {', '.join(known)}")
     best = None
     wanted = [method] if method else study.graph_methods()
     files = [f for m in wanted for f in sorted((paths.study_dir(study.name) / "cells" / m).glob("*/cell.json"))]
     for f in files:
         c = read_json(f)
-        sc = study.scenarios.get(c["scenario"])
-        if sc is None or sc.depth == "gt" or sc.semantic == "gt" or sc.depth_scale != 1.0:
-            continue
-        if not (f.parent / "model.pt").is_file():
+        if not image:
+            sc = study.scenarios.get(c["scenario"])
+            if sc is None or sc.depth == "gt" or sc.semantic == "gt" or sc.depth_scale != 1.0:
+                continue
+        if (not image or method in STATEFUL) and not (f.parent / "model.pt").is_file():
             continue
         if best is None or cell_metrics(c)[PAPER]["recall@1"] > cell_metrics(best[0])[PAPER]["recall@1"]:
             best = (c, f.parent)
     if best is None:
-        raise LocalizeError(f"{paths.study_dir(study.name) / 'cells'}: no finished {method or 'graph-method'} cell with "
-                            f"predicted depth and semantics and a saved model.pt; run `monolib study {study.name}` first")
+        what = (f"{method} cell" + (" with a saved model.pt" if method in STATEFUL else "") if image
+                else f"{method or 'graph-method'} cell with predicted depth and semantics and a saved model.pt")
+        raise LocalizeError(f"{paths.study_dir(study.name) / 'cells'}: no finished {what}; run "
+                            f"`monolib study {study.name}` first")
     return {**best[0], "folder": str(best[1])}
+
+
+# the image methods whose cell learns what their descriptor needs (a vocabulary, weights): its model.pt
+STATEFUL = ("orb_bow", "image_triplet", "imagenet_vlad", "imagenet_triplet")
+
+
+def image_describer(method: str, state: dict | None):
+    """The descriptor function of an image method (`baselines.describer` or `pretrained.describer`)."""
+    return (pretrained.describer if method in methods.IMAGENET else baselines.describer)(method, state)
+
+
+def describe_frames(describe, frames, batch: int = 32) -> np.ndarray:
+    """(N, D) float32: `describe` over the frames' RGB, in batches."""
+    out = []
+    for s in range(0, len(frames), batch):
+        rgb = []
+        for f in frames[s : s + batch]:
+            if f.rgb is None:
+                raise LocalizeError(f"{f.files['color']}: file not found (the RGB a database frame is described from)")
+            rgb.append(f.rgb)
+        out.append(describe(np.stack(rgb)))
+    return np.concatenate(out).astype(np.float32)
 
 
 def build_index(study: Study, out: str | Path, method: str | None = None) -> Path:
     """Write the database of the study's test frames (their embeddings and settings) into `out`."""
     out = Path(out)
     c = pick_cell(study, method)
+    if _image_method(study, method):
+        state_file = Path(c["folder"]) / "model.pt"
+        state = torch.load(state_file, map_location="cpu", weights_only=True) if state_file.is_file() else {}
+        test = selection.select_frames(study, dataset.open_dataset(study), study.gcn.val_settings).test
+        emb = describe_frames(image_describer(method, state), test)
+        return write_database(out, study, c, state, [f.key for f in test], [f.setting for f in test], emb)
     spec = study.gcn_spec(c["method"])
     threshold = float(c["threshold"])  # "inf" reads as inf
     model = gcn.GraphEncoder(spec)
@@ -98,7 +139,7 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     test = [graph.at_threshold(g, threshold, spec.edges == "both")
             for g in scenegraphs.load(study, c["scenario"])["test"]]
     emb = gcn.embed(model, test).numpy().astype(np.float32)
-    return write_database(out, study, c, model, [g.frame for g in test], [g.setting for g in test], emb)
+    return write_database(out, study, c, model.state_dict(), [g.frame for g in test], [g.setting for g in test], emb)
 
 
 META_KEYS = ("study", "study_file", "cell", "method", "scenario", "threshold", "seed", "models", "width", "height")
@@ -106,25 +147,31 @@ META_KEYS = ("study", "study_file", "cell", "method", "scenario", "threshold", "
 DEFAULT_PROJECTION = "exact"
 
 
-def write_database(out: str | Path, study: Study, cell: dict, model: gcn.GraphEncoder, frames: list[str],
+def write_database(out: str | Path, study: Study, cell: dict, state: dict | torch.nn.Module, frames: list[str],
                    settings: list[str], embeddings: np.ndarray) -> Path:
-    """The database files: `embeddings.npy` (one row per frame), `frames.csv` (frame, setting), `encoder.pt` and
-    `meta.json` (study, cell, encoder and perception models). `cell` is the cell.json (with its ``folder``)."""
+    """The database files: `embeddings.npy` (one row per frame), `frames.csv` (frame, setting), `encoder.pt` (the
+    encoder's state: a graph encoder's weights; an image method's vocabulary or weights, empty for a descriptor that
+    learns nothing) and `meta.json` (study, cell, kind, encoder and perception models). `cell` is the cell.json
+    (with its ``folder``)."""
     out = Path(out)
-    sc = study.scenarios[cell["scenario"]]
+    state = state.state_dict() if isinstance(state, torch.nn.Module) else state  # (an encoder: its weights)
+    image = methods.kind(cell["method"], study) == "image"
+    sc = None if image else study.scenarios[cell["scenario"]]
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "embeddings.npy") as tmp:
         with open(tmp, "wb") as fh:
             np.save(fh, np.asarray(embeddings, np.float32))
     write_text(out / "frames.csv", pd.DataFrame({"frame": frames, "setting": settings}).to_csv(index=False))
-    save_torch(out / "encoder.pt", {k: v.detach().cpu() for k, v in model.state_dict().items()})
+    save_torch(out / "encoder.pt", {k: v.detach().cpu() for k, v in state.items()})
     write_json(out / "meta.json", {
         "study": study.name, "study_file": study.path, "cell": cell["folder"], "method": cell["method"],
-        "scenario": cell["scenario"],
+        "kind": "image" if image else "graph", "scenario": cell["scenario"],
         "threshold": cell["threshold"], "seed": cell["seed"], "cell_recall@1": cell_metrics(cell)[PAPER]["recall@1"],
-        "models": {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)},
+        "models": {} if image else {"semantic": perception.model_tag(study, sc.semantic),
+                                    "depth": perception.model_tag(study, sc.depth)},
         "width": study.dataset.width, "height": study.dataset.height, "frames": len(frames),
-        "projection": study.projection(cell["scenario"]),  # the query graphs are built in the database's camera
+        # the query graphs are built in the database's camera (an image method builds none)
+        "projection": None if image else study.projection(cell["scenario"]),
     })
     return out
 
@@ -161,11 +208,12 @@ def read_database(db: str | Path) -> tuple[dict, pd.DataFrame, np.ndarray]:
 class Localizer:
     study: Study
     meta: dict
-    segmentation: torch.nn.Module
-    depth: torch.nn.Module
-    encoder: gcn.GraphEncoder
+    segmentation: torch.nn.Module | None
+    depth: torch.nn.Module | None
+    encoder: gcn.GraphEncoder | None
     embeddings: torch.Tensor
     frames: pd.DataFrame
+    describe: object = None  # an image method's descriptor function (`image_describer`); None for a graph method
 
     @staticmethod
     def open(db: str | Path) -> "Localizer":
@@ -173,6 +221,13 @@ class Localizer:
         meta, frames, emb = read_database(db)
         study = load_study(meta["study_file"], check_files=False)
         rebuild = f"rebuild the database with `monolib index {study.name} --out {db}`"
+        if meta.get("kind") == "image":
+            if meta["method"] not in study.methods:
+                raise LocalizeError(f"{db / 'meta.json'}: image method {meta['method']!r} is not a method of the study "
+                                    f"file {study.path} (its methods: {', '.join(study.methods)}); {rebuild}")
+            state = torch.load(db / "encoder.pt", map_location="cpu", weights_only=True)
+            return Localizer(study, meta, None, None, None, torch.from_numpy(emb), frames,
+                             image_describer(meta["method"], state))
         if meta["scenario"] not in study.scenarios:
             raise LocalizeError(f"{db / 'meta.json'}: scenario {meta['scenario']!r} is not in the study file "
                                 f"{study.path} (its scenarios: {', '.join(study.scenarios)}); {rebuild}")
@@ -192,10 +247,16 @@ class Localizer:
         return Localizer(study, meta, seg, dep, encoder, torch.from_numpy(emb), frames)
 
     def stages(self, rgb: np.ndarray, timings: dict | None = None) -> torch.Tensor:
-        """The per-image pipeline: segmentation, depth, back-projection + graph, encoder -> (64,) embedding."""
+        """The per-image pipeline: segmentation, depth, back-projection + graph, encoder -> (D,) embedding; an
+        image method's descriptor alone for an image database."""
         t = time.perf_counter()
         w, h = self.meta["width"], self.meta["height"]
         frame = to_study_frame(rgb, w, h)
+        if self.describe is not None:  # an image method: its descriptor is the whole pipeline
+            z = torch.from_numpy(self.describe(frame[None])[0])
+            if timings is not None:
+                timings.setdefault("descriptor", []).append(time.perf_counter() - t)
+            return z
         semantic = seg_mod.predict(self.segmentation, frame[None])[0]
         t1 = time.perf_counter()
         depth = depth_mod.predict(self.depth, frame[None])[0]

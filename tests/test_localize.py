@@ -114,11 +114,11 @@ def test_index_before_the_study_has_run(tmp_path, runs, capsys):
 def test_index_with_an_unknown_method(tmp_path, runs, capsys):
     code, line = run(["index", study_file(tmp_path), "--method", "nope", "--out", tmp_path / "db"], capsys)
     assert code == 2
-    assert line == (f"error: {tmp_path / 'study.yaml'}: --method nope: not a graph method of study smoke; "
+    assert line == (f"error: {tmp_path / 'study.yaml'}: --method nope: not a method of study smoke; "
                     "expected one of gcn, label_embedding")
-    # an image baseline is a method of the project but not one an index can encode with
+    # an image baseline is a method of the project, but not of this study: its cells are not there to encode with
     code, line = run(["index", "smoke", "--method", "color_hist", "--out", tmp_path / "db"], capsys)
-    assert code == 2 and "--method color_hist: not a graph method of study smoke; expected one of gcn" in line
+    assert code == 2 and "--method color_hist: not a method of study smoke; expected one of gcn" in line
     assert not (tmp_path / "db").exists()
 
 
@@ -173,3 +173,56 @@ def test_a_database_that_is_not_a_database(tmp_path, runs, image, capsys):
     np.save(db / "embeddings.npy", np.zeros((5, 64), np.float32))  # 12 frames, 5 embeddings
     code, line = run(["localize", image, "--db", db], capsys)
     assert code == 2 and "(shape [5, 64]) disagree; expected columns frame, setting and one embedding" in line, line
+
+
+# ---- image-method databases ---------------------------------------------------------------------------------------
+
+def image_database(tmp_path, method="imagenet_gem", change=None):
+    """A database of an image method (its descriptor of 4 settings' made-up frames), the way `monolib index
+    --method` writes one."""
+    from monolib.retrieval import pretrained
+
+    def with_method(d):
+        d["methods"] = ["gcn", method]
+        if change:
+            change(d)
+    study = load_study(study_file(tmp_path, with_method))
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (8, 96, 128, 3), dtype=np.uint8)
+    emb = pretrained.describer(method, {})(rgb)
+    frames = [f"{s}/cam_00/{i:04d}" for s in SETTINGS for i in range(2)]
+    cell = {"folder": str(tmp_path / "cell"), "method": method, "scenario": "rgb", "threshold": "inf", "seed": 0,
+            "metrics": {"paper": {"recall@1": 50.0}}}
+    db = localize.write_database(tmp_path / "db", study, cell, {}, frames, [f.split("/")[0] for f in frames], emb)
+    return db, rgb
+
+
+def test_an_image_database_localizes_with_its_descriptor_alone(tmp_path, runs):
+    """No perception model exists (empty runs/): an image method's database needs none. A query that is one of the
+    database's images finds its setting first, at distance 0."""
+    db, rgb = image_database(tmp_path)
+    meta, _, emb = localize.read_database(db)
+    assert meta["kind"] == "image" and meta["models"] == {} and meta["projection"] is None
+    assert emb.shape == (8, 1280)
+    path = tmp_path / "q.png"
+    assert cv2.imwrite(str(path), cv2.cvtColor(rgb[5], cv2.COLOR_RGB2BGR))
+    (result,) = localize.localize([str(path)], db, k=2)
+    assert result["matches"][0]["setting"] == SETTINGS[2] and result["matches"][0]["distance"] < 1e-3
+
+
+def test_an_image_method_removed_from_the_study_file(tmp_path, runs, image, capsys):
+    db, _ = image_database(tmp_path)
+    study_file(tmp_path)  # the smoke study's methods: gcn only
+    code, line = run(["localize", image, "--db", db], capsys)
+    assert code == 2
+    assert line == (f"error: {db / 'meta.json'}: image method 'imagenet_gem' is not a method of the study file "
+                    f"{tmp_path / 'study.yaml'} (its methods: gcn); rebuild the database with "
+                    f"`monolib index smoke --out {db}`")
+
+
+def test_index_of_an_image_method_before_its_cells(tmp_path, runs, capsys):
+    path = study_file(tmp_path, lambda d: d.update(methods=["gcn", "imagenet_vlad"]))
+    code, line = run(["index", path, "--method", "imagenet_vlad", "--out", tmp_path / "db"], capsys)
+    assert code == 2
+    assert line == (f"error: {runs / 'smoke' / 'cells'}: no finished imagenet_vlad cell with a saved model.pt; run "
+                    f"`monolib study smoke` first")

@@ -120,21 +120,31 @@ class BagOfWords:
         return (v / n if n > 0 else v).astype(np.float32)
 
 
+def seeded_kmeans(points: np.ndarray, k: int, seed: int, sample: int, iters: int = KMEANS_ITERS,
+                  eps: float = 1e-3) -> np.ndarray:
+    """(min(k, n), D) float32 centres: cv2.kmeans (k-means++ init, one attempt, seeded) on a seeded subsample of
+    `sample` of the (n, D) points. The one k-means of the visual vocabularies (ORB's here, VLAD's in
+    `monolib.retrieval.pretrained`)."""
+    rng = np.random.default_rng(seed)
+    if len(points) > sample:
+        points = points[np.sort(rng.choice(len(points), sample, replace=False))]
+    cv2.setRNGSeed(int(seed))
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, iters, eps)
+    _, _, centres = cv2.kmeans(np.ascontiguousarray(points, dtype=np.float32), min(k, len(points)), None, criteria,
+                               1, cv2.KMEANS_PP_CENTERS)
+    return centres.astype(np.float32)
+
+
 def learn_vocabulary(train_desc: list[np.ndarray], seed: int, words: int = BOW_WORDS,
                      sample: int = BOW_SAMPLE) -> BagOfWords:
-    """k-means (cv2.kmeans, k-means++ init, seeded) on a seeded subsample of the training descriptors; idf from
-    the training images' word occurrences."""
+    """k-means (`seeded_kmeans`) on a seeded subsample of the training descriptors; idf from the training images'
+    word occurrences."""
     all_desc = np.concatenate([d for d in train_desc if len(d)] or [np.zeros((0, 256), np.float32)])
     if len(all_desc) == 0:
         raise ValueError("orb_bow: no ORB keypoint in any training image")
-    rng = np.random.default_rng(seed)
-    if len(all_desc) > sample:
-        all_desc = all_desc[np.sort(rng.choice(len(all_desc), sample, replace=False))]
-    k = min(words, len(all_desc))
-    cv2.setRNGSeed(int(seed))
-    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, KMEANS_ITERS, 1e-3)
-    _, _, centres = cv2.kmeans(np.ascontiguousarray(all_desc), k, None, criteria, 1, cv2.KMEANS_PP_CENTERS)
-    bow = BagOfWords(centres.astype(np.float32), np.ones(k, np.float32))
+    centres = seeded_kmeans(all_desc, words, seed, sample)
+    k = len(centres)
+    bow = BagOfWords(centres, np.ones(k, np.float32))
     df = np.zeros(k)
     for d in train_desc:
         df += bow.counts(d) > 0
@@ -143,7 +153,8 @@ def learn_vocabulary(train_desc: list[np.ndarray], seed: int, words: int = BOW_W
 
 
 def orb_bow_embed(selection, seed: int, words: int = BOW_WORDS):
-    """(test embeddings, extra info) for `orb_bow`: vocabulary + idf from the training split (train + val)."""
+    """(test embeddings, extra info, state) for `orb_bow`: vocabulary + idf from the training split (train + val);
+    `state` holds them (``centres``, ``idf``) for `describer`."""
     t = time.perf_counter()
     describe = lambda f: np.unpackbits(per_frame(f, "orb", orb_bits), axis=1).astype(np.float32)  # noqa: E731
     train_desc = [describe(f) for f in selection.train + selection.val]
@@ -155,7 +166,8 @@ def orb_bow_embed(selection, seed: int, words: int = BOW_WORDS):
              "train_keypoints_mean": float(np.mean([len(d) for d in train_desc])),
              "test_keypoints_mean": float(np.mean([len(d) for d in test_desc])) if test_desc else 0.0,
              "test_no_keypoints": int(sum(len(d) == 0 for d in test_desc))}
-    return emb.astype(np.float32), extra
+    state = {"centres": torch.from_numpy(bow.centres), "idf": torch.from_numpy(bow.idf)}
+    return emb.astype(np.float32), extra, state
 
 
 # ------------------------------------------------------------------------------------------ CNN + triplet loss
@@ -232,16 +244,20 @@ class CNNResult:
     seconds: float
 
 
-def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tensor, val_settings, spec, seed: int,
-              threads: int = 2, augment: bool = True, deterministic: bool = True) -> CNNResult:
-    """The GCN's training loop (`monolib.retrieval.gcn.train`) with an image encoder: Adam, triplet margin loss, fresh
-    per-setting triplets each epoch, early stopping on validation leave-one-out recall@1, best state kept."""
+def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torch.Tensor, val_settings, spec,
+                  seed: int, batch_input, embed, threads: int = 2, deterministic: bool = True) -> CNNResult:
+    """The GCN's training loop (`monolib.retrieval.gcn.train`) for an encoder of images (or of their features):
+    Adam, triplet margin loss, fresh per-setting triplets each epoch, early stopping on validation leave-one-out
+    recall@1, best state kept. `make_model()` builds the encoder (after the seeding); `batch_input(x, gen)` turns a
+    batch of `train_x` rows (anchors, positives, negatives) into the model's input on the CPU, augmented with the
+    generator `gen`; `embed(model, val_x)` gives the validation embeddings."""
     torch.set_num_threads(threads)
     gen = seed_everything(int(seed), deterministic)
     rng = np.random.default_rng(seed)
     dev = device()
-    model = ImageEncoder().to(dev)
-    opt = torch.optim.Adam(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
+    model = make_model().to(dev)
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=spec.lr,
+                           weight_decay=spec.weight_decay)
     loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
     settings, val_settings = np.asarray(train_settings), np.asarray(val_settings)
     stopper = EarlyStopping(spec.patience, seed, model)
@@ -254,21 +270,32 @@ def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tens
         for s in range(0, len(perm), spec.batch_size):
             idx = perm[s : s + spec.batch_size]
             b = len(idx)
-            x = train_images[torch.from_numpy(np.concatenate([a[idx], p[idx], n[idx]]))].float() / 255.0
-            if augment:
-                x = _augment(x, gen)
-            z = model(((x - 0.5) / 0.25).to(dev))
+            x = batch_input(train_x[torch.from_numpy(np.concatenate([a[idx], p[idx], n[idx]]))], gen)
+            z = model(x.to(dev))
             loss = loss_fn(z[:b], z[b : 2 * b], z[2 * b :])
             opt.zero_grad()
             loss.backward()
             opt.step()
             losses.append(loss.item() * b)
         train_loss = sum(losses) / len(a)
-        val_emb = cnn_embed(model, val_images) if len(val_images) else None
+        val_emb = embed(model, val_x) if len(val_x) else None
         if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn):
             break
     model.load_state_dict(stopper.best_state)
     return CNNResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)
+
+
+def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tensor, val_settings, spec, seed: int,
+              threads: int = 2, augment: bool = True, deterministic: bool = True) -> CNNResult:
+    """`train_encoder` with the from-scratch `ImageEncoder` on uint8 images (flip and colour jitter)."""
+    def batch_input(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+        x = x.float() / 255.0
+        if augment:
+            x = _augment(x, gen)
+        return (x - 0.5) / 0.25
+
+    return train_encoder(ImageEncoder, train_images, train_settings, val_images, val_settings, spec, seed,
+                         batch_input, cnn_embed, threads, deterministic)
 
 
 def image_triplet_embed(study, selection, seed: int, spec=None):
@@ -293,8 +320,31 @@ def embed(method: str, study, selection, seed: int):
     if method == "color_hist":
         return np.stack([per_frame(f, "color_hist", color_hist) for f in selection.test]), {}, None, None
     if method == "orb_bow":
-        emb, extra = orb_bow_embed(selection, seed)
-        return emb, extra, None, None
+        emb, extra, state = orb_bow_embed(selection, seed)
+        return emb, extra, None, state
     if method == "image_triplet":
         return image_triplet_embed(study, selection, seed)
     raise KeyError(f"image method {method!r}: no embedding function in monolib.retrieval.baselines")
+
+
+def describer(method: str, state: dict | None):
+    """``describe(rgb) -> (N, D) float32``: the descriptor of `method` for a (N, H, W, 3) uint8 stack of new images
+    at the study's resolution, as its cell computed the test frames' (`state`: the cell's ``model.pt``: the ORB
+    vocabulary, the CNN's weights)."""
+    if method == "color_hist":
+        return lambda rgb: np.stack([color_hist(x) for x in rgb])
+    if method == "orb_bow":
+        bow = BagOfWords(state["centres"].numpy(), state["idf"].numpy())
+        return lambda rgb: np.stack([bow.describe(orb_descriptors(x)) for x in rgb])
+    if method == "image_triplet":
+        model = ImageEncoder()
+        model.load_state_dict(state)
+        model.to(device())
+        h, w = CNN_SIZE
+
+        def describe(rgb: np.ndarray) -> np.ndarray:
+            small = np.stack([cv2.resize(np.ascontiguousarray(x), (w, h), interpolation=cv2.INTER_AREA) for x in rgb])
+            return cnn_embed(model, torch.from_numpy(small).permute(0, 3, 1, 2).contiguous()).numpy().astype(np.float32)
+
+        return describe
+    raise KeyError(f"image method {method!r}: no descriptor in monolib.retrieval.baselines")

@@ -30,7 +30,8 @@ from monolib.io import (
     atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
 )
 from monolib.params import Study, StudyError, key_of
-from monolib.retrieval import baselines, evaluate, gcn, metrics
+from monolib.perception import features
+from monolib.retrieval import baselines, evaluate, gcn, metrics, pretrained
 
 log = logging.getLogger(__name__)
 IMAGE_SCENARIO = "rgb"  # image methods use neither the scenario's sources nor the threshold
@@ -43,9 +44,12 @@ def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed
 def inputs_key(study: Study, method: str, scenario: str, graph_key: Optional[str] = None,
                build: bool = False) -> str:
     """The key of what a cell reads: for a graph method its scenario's graphs (`graph_inputs`), for an image method
-    the frames (the data stage's `dataset_key`). `graph_key`: the graph stage's `scenario_key`, when known."""
+    the frames (the data stage's `dataset_key`), or their ImageNet features (`features.features_key`, which holds the
+    dataset's). `graph_key`: the graph stage's `scenario_key`, when known."""
     if methods.kind(method, study) == "graph":
         return graph_inputs(study, scenario, graph_key, build)
+    if method in methods.IMAGENET:
+        return features.features_key(study)
     return dataset.dataset_key(study)
 
 
@@ -207,7 +211,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         sel = selection.select_frames(study, ds, study.gcn.val_settings)
         timings["graphs_s"] = 0.0
         t = time.perf_counter()
-        emb, extra, history, state = baselines.embed(method, study, sel, seed)
+        embed = pretrained.embed if method in methods.IMAGENET else baselines.embed
+        emb, extra, history, state = embed(method, study, sel, seed)
         frames, settings = [f.key for f in sel.test], [f.setting for f in sel.test]
     timings["embed_s"] = time.perf_counter() - t
 

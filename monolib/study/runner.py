@@ -16,7 +16,7 @@ from monolib.data import stage as dataset
 from monolib.graphs import fidelity, stage as scenegraphs
 from monolib.io import write_json
 from monolib.params import Study, StudyError, load_study
-from monolib.perception import stage as perception
+from monolib.perception import features, stage as perception
 from monolib.progress import tqdm
 from monolib.report import graph_sizes, readme, viz
 from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete, refresh_metrics,
@@ -189,8 +189,10 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
     scenario_keys = scenegraphs.scenario_keys(study, data_key) if study.graph_methods() else {}
     graph_cells = {c.scenario for c in cells if methods.kind(c.method, study) == "graph"}
     inputs = {sc: graph_inputs(study, sc, scenario_keys[sc], build=True) for sc in sorted(graph_cells)}  # + unread
+    image_inputs = {m: features.features_key(study, data_key) if m in methods.IMAGENET else data_key
+                    for m in {c.method for c in cells}}
     keys = {c.name: cell_key(study, c.method, c.scenario, c.threshold, c.seed,
-                             inputs[c.scenario] if methods.kind(c.method, study) == "graph" else data_key)
+                             inputs[c.scenario] if methods.kind(c.method, study) == "graph" else image_inputs[c.method])
             for c in cells}
     records = {c.name: claim(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
     todo = [c for c in cells if records[c.name] is None]
@@ -320,6 +322,10 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
             perception.draw_figures(study, dataset=ds)
     else:
         say("[2/5] perception: not needed (ground-truth scenarios only)")
+    imagenet = [m for m in study.methods if m in methods.IMAGENET]
+    if imagenet and IMAGE_SCENARIO in names:
+        say(f"[2/5] perception: ImageNet features of the frames ({', '.join(imagenet)})")
+        features.ensure(study, ds, progress=progress)
     times["perception_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
