@@ -31,9 +31,9 @@ from monolib.data.hypersim import Camera
 from monolib.device import device
 from monolib.graphs import build as graph, stage as scenegraphs
 from monolib.graphs.build import scene_nodes
-from monolib.io import atomic_path, read_json, save_torch, write_json, write_text
+from monolib.io import DataFileError, atomic_path, read_json, save_torch, write_json, write_text
 from monolib.params import PAPER, Study, load_study
-from monolib.perception import depth as depth_mod, segmentation as seg_mod, stage as perception
+from monolib.perception import depth as depth_mod, features, segmentation as seg_mod, stage as perception
 from monolib.report.results import cell_metrics
 from monolib.retrieval import baselines, gcn, pretrained
 
@@ -109,16 +109,12 @@ def image_describer(method: str, state: dict | None):
 
 
 def describe_frames(describe, frames, batch: int = 32) -> np.ndarray:
-    """(N, D) float32: `describe` over the frames' RGB, in batches."""
-    out = []
-    for s in range(0, len(frames), batch):
-        rgb = []
-        for f in frames[s : s + batch]:
-            if f.rgb is None:
-                raise LocalizeError(f"{f.files['color']}: file not found (the RGB a database frame is described from)")
-            rgb.append(f.rgb)
-        out.append(describe(np.stack(rgb)))
-    return np.concatenate(out).astype(np.float32)
+    """(N, D) float32: `describe` over the frames' RGB, in batches (`features.rgb_batches`)."""
+    try:
+        return np.concatenate([describe(rgb) for rgb in
+                               features.rgb_batches(frames, batch, "the RGB a database frame is described from")])
+    except DataFileError as exc:
+        raise LocalizeError(str(exc)) from None
 
 
 def build_index(study: Study, out: str | Path, method: str | None = None) -> Path:

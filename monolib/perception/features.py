@@ -113,33 +113,46 @@ def _read(path: Path) -> dict:
     return out
 
 
-def ensure(study: Study, ds=None, progress: bool = True) -> Path:
-    """The features file of the study, computed when absent (or unreadable: removed and computed again). Every
-    selected frame needs its RGB: a missing colour file is one `DataFileError` naming it."""
+def rgb_batches(frames, batch: int, purpose: str):
+    """(N, H, W, 3) uint8 stacks of the frames' RGB, `batch` frames at a time; a missing colour file is one
+    `DataFileError` naming it and `purpose` (what the RGB is read for)."""
+    for s in range(0, len(frames), batch):
+        rgb = []
+        for f in frames[s : s + batch]:
+            if f.rgb is None:
+                raise DataFileError(f"{f.files['color']}: file not found ({purpose})")
+            rgb.append(f.rgb)
+        yield np.stack(rgb)
+
+
+def _load_or_compute(study: Study, ds=None, progress: bool = True) -> tuple[Path, dict]:
+    """(path, content) of the study's features file, read once: computed and written first when absent (or
+    unreadable: removed and computed again)."""
     path = features_path(study)
-    if load_cached(path, _read, "features file") is not None:
-        return path
+    held = load_cached(path, _read, "features file")
+    if held is not None:
+        return path, held
     frames = frames_of(study, ds)
     trunk, _ = networks()
     trunk.to(device())
     t0 = time.perf_counter()
-    maps = []
-    for s in tqdm(range(0, len(frames), BATCH), desc="ImageNet features", unit="batch", disable=not progress,
-                  leave=False):
-        rgb = []
-        for f in frames[s : s + BATCH]:
-            if f.rgb is None:
-                raise DataFileError(f"{f.files['color']}: file not found (the RGB the ImageNet features are "
-                                    f"computed from)")
-            rgb.append(f.rgb)
-        maps.append(trunk_features(trunk, np.stack(rgb)))
-    trunk_maps = np.concatenate(maps)
+    batches = tqdm(rgb_batches(frames, BATCH, "the RGB the ImageNet features are computed from"),
+                   total=-(-len(frames) // BATCH), desc="ImageNet features", unit="batch", disable=not progress,
+                   leave=False)
+    trunk_maps = np.concatenate([trunk_features(trunk, rgb) for rgb in batches])
+    keys = [f.key for f in frames]
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, frames=np.array([f.key for f in frames]), trunk=trunk_maps)
+            np.savez(fh, frames=np.array(keys), trunk=trunk_maps)
     log.info("ImageNet features: %d frames (%s) in %.1f s -> %s", len(frames), "x".join(map(str, trunk_maps.shape[1:])),
              time.perf_counter() - t0, path)
-    return path
+    return path, {"frames": keys, "trunk": trunk_maps}
+
+
+def ensure(study: Study, ds=None, progress: bool = True) -> Path:
+    """The features file of the study, computed when absent (or unreadable: removed and computed again). Every
+    selected frame needs its RGB: a missing colour file is one `DataFileError` naming it."""
+    return _load_or_compute(study, ds, progress)[0]
 
 
 _LOADED: dict[str, dict] = {}
@@ -151,9 +164,8 @@ def load(study: Study, frames) -> np.ndarray:
     row read it once. A frame not in the file is one `DataFileError` naming the file."""
     path = features_path(study)
     if str(path) not in _LOADED:
-        ensure(study, progress=False)
+        _, z = _load_or_compute(study, progress=False)  # (the file read once)
         _LOADED.clear()  # one study's features at a time (about 70 MB for quick)
-        z = _read(path)
         _LOADED[str(path)] = {"index": {k: i for i, k in enumerate(z["frames"])}, "trunk": z["trunk"]}
     held = _LOADED[str(path)]
     missing = [f.key for f in frames if f.key not in held["index"]]

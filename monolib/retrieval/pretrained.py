@@ -30,11 +30,12 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from monolib import methods
 from monolib.device import device
 from monolib.perception import features
 from monolib.retrieval.baselines import seeded_kmeans, train_encoder
 
-METHODS = ("imagenet_gem", "imagenet_vlad", "imagenet_triplet")
+METHODS = methods.IMAGENET  # (the registry's list of the image methods that read ImageNet features)
 GEM_P = 3.0
 GEM_EPS = 1e-6
 VLAD_WORDS = 32
