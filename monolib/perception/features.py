@@ -140,13 +140,13 @@ def _load_or_compute(study: Study, ds=None, progress: bool = True) -> tuple[Path
                    total=-(-len(frames) // BATCH), desc="ImageNet features", unit="batch", disable=not progress,
                    leave=False)
     trunk_maps = np.concatenate([trunk_features(trunk, rgb) for rgb in batches])
-    keys = [f.key for f in frames]
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            np.savez(fh, frames=np.array(keys), trunk=trunk_maps)
+            np.savez(fh, frames=np.array([f.key for f in frames]), trunk=trunk_maps)
     log.info("ImageNet features: %d frames (%s) in %.1f s -> %s", len(frames), "x".join(map(str, trunk_maps.shape[1:])),
              time.perf_counter() - t0, path)
-    return path, {"frames": keys, "trunk": trunk_maps}
+    return path, _read(path)  # (as every later reader gets it: a freshly computed array in memory lies elsewhere,
+    # and the head's kernels round differently in the last bit on it)
 
 
 def ensure(study: Study, ds=None, progress: bool = True) -> Path:
