@@ -132,8 +132,8 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
     model = gcn.GraphEncoder(spec)
     model.load_state_dict(torch.load(Path(c["folder"]) / "model.pt", map_location="cpu", weights_only=True))
     model.to(device())
-    test = [graph.at_threshold(g, threshold, spec.edges == "both")
-            for g in scenegraphs.load(study, c["scenario"])["test"]]
+    projection = study.projection(c["scenario"])
+    test = [gcn.encoder_graph(g, threshold, spec, projection) for g in scenegraphs.load(study, c["scenario"])["test"]]
     emb = gcn.embed(model, test).numpy().astype(np.float32)
     return write_database(out, study, c, model.state_dict(), [g.frame for g in test], [g.setting for g in test], emb)
 
@@ -257,11 +257,10 @@ class Localizer:
         t1 = time.perf_counter()
         depth = depth_mod.predict(self.depth, frame[None])[0]
         t2 = time.perf_counter()
-        x, pos = scene_nodes(frame, depth, semantic, Camera.canonical(w, h),
-                             self.meta.get("projection", DEFAULT_PROJECTION))
+        projection = self.meta.get("projection", DEFAULT_PROJECTION)
+        x, pos = scene_nodes(frame, depth, semantic, Camera.canonical(w, h), projection)
         threshold = float(self.meta["threshold"])  # "inf" reads as inf
-        both = self.encoder.spec.edges == "both"
-        g = graph.at_threshold(graph.complete_graph(x, pos, "query", "query"), threshold, both)
+        g = gcn.encoder_graph(graph.complete_graph(x, pos, "query", "query"), threshold, self.encoder.spec, projection)
         t3 = time.perf_counter()
         z = gcn.embed(self.encoder, [g])[0]
         t4 = time.perf_counter()

@@ -129,14 +129,22 @@ class GCNSpec:
     patience: int = 10
     val_settings: int = 4                    # training settings held out for early stopping
     # encoder choices (the defaults are the paper's; `variants:` in a study file change them per method)
-    conv: str = "gcn"                        # gcn | gine (reads edge lengths) | gatv2 (reads edge lengths)
+    conv: str = "gcn"                        # gcn | gine, gatv2, transformer (read the edge attributes)
     edges: str = "both"                      # both directions, or "upper" (i < j only, as the published code)
     linear: bool = True                      # Linear(hidden -> out) after the convs; False: last conv maps to out
     label: str = "raw"                       # NYU40 id as a raw number | "embedding" (learned, 16-d) | "onehot"
     colour: str = "raw"                      # raw | "standardised" (training-set mean and std)
     edge_weight: str = "none"                # none | "inverse" (GCNConv weight 1 / (1 + length))
-    pooling: str = "max"                     # max | "meanmax" (mean and max concatenated)
-    mining: str = "random"                   # the paper's random triplets | "batch_hard" (hardest in the batch)
+    pooling: str = "max"                     # max | "meanmax" (mean and max concatenated) | "attention"
+    mining: str = "random"                   # the paper's random triplets | "batch_hard" (hardest in the batch) |
+                                             # "family" (random, a share of the negatives from the anchor's family)
+                                             # | "batch_hard_family" (batches of whole families, hardest in batch)
+    family_share: float = 0.5                # `family`: share of anchors whose negative is of their own family
+    node_layout: bool = False                # node features + where the node is: image column, row, log depth
+    edge_layout: bool = False                # edge features: length + vertical offset + angle to up (else length)
+    pair_readout: bool = False               # + an MLP over every edge's (node i, node j, edge features), pooled
+    message_passing: bool = True             # the convolutions read the edges; False: each node alone (the edges
+                                             # then reach the embedding through the pair readout only)
 
 
 @dataclass
@@ -148,6 +156,7 @@ class Variant:
     description: str = ""
 
 
+TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
 PAPER, SIBLINGS = "paper", "siblings"  # the test protocols: the paper's, and pairs of sibling settings
 PROTOCOLS = (PAPER, SIBLINGS)          # in table order
 
@@ -453,9 +462,10 @@ def _check(study: Study, check_files: bool = True) -> None:
     for m in study.methods:
         if m not in METHODS:
             bad("methods", f"unknown method {m!r} (known: {', '.join(sorted(METHODS))})")
-    choices = {"conv": ("gcn", "gine", "gatv2"), "edges": ("both", "upper"), "label": ("raw", "embedding", "onehot"),
-               "colour": ("raw", "standardised"), "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax"),
-               "mining": ("random", "batch_hard")}
+    choices = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("both", "upper"),
+               "label": ("raw", "embedding", "onehot"), "colour": ("raw", "standardised"),
+               "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax", "attention"),
+               "mining": ("random", "batch_hard", "family", "batch_hard_family")}
     specs = {"gcn": study.gcn}
     for vname, v in study.variants.items():
         if vname in METHODS:
@@ -473,6 +483,16 @@ def _check(study: Study, check_files: bool = True) -> None:
         for key in ("batch_size", "patience"):
             if getattr(g, key) < 1:
                 bad(f"{where}.{key}", f"expected at least 1, got {getattr(g, key)}")
+        if not 0.0 <= g.family_share <= 1.0:
+            bad(f"{where}.family_share", f"expected a share in [0, 1], got {g.family_share}")
+        if g.conv == "transformer" and g.hidden % TRANSFORMER_HEADS:
+            bad(f"{where}.hidden", f"conv: transformer needs hidden divisible by its {TRANSFORMER_HEADS} heads, "
+                f"got {g.hidden}")
+        if study.graphs_root and g.node_layout:
+            bad(f"{where}.node_layout", "published graphs hold no node positions: only edge lengths can be read")
+        if study.graphs_root and g.edge_layout:
+            bad(f"{where}.edge_layout", "published graphs hold no node positions: the vertical offset and the "
+                "angle of an edge cannot be computed (edge_layout: false reads their lengths)")
 
 
 def find_study(study: str | Path) -> Path:

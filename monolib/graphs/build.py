@@ -20,6 +20,7 @@ Two back-projections (`PROJECTIONS`, the study key `graphs.projection`):
 from __future__ import annotations
 
 import math
+from typing import Optional
 
 import numpy as np
 import torch
@@ -29,6 +30,14 @@ from monolib.data.hypersim import Camera
 from monolib.params import PROJECTIONS
 
 NODE_FEATURES = 4  # NYU40 id, median R, G, B
+# The layout a graph encoder can read (`layout_graph`), in the camera frame (monocular: no world pose), axes made
+# alike for both projections: right, up, forward. `FRAME_AXES[projection]` are the projection's (right, up,
+# forward) directions: the original code's camera has y down and z forward, the exact one (Hypersim's) y up and z
+# backward.
+FRAME_AXES = {"monograph": ((1.0, 0.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0)),
+              "exact": ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, -1.0))}
+NODE_LAYOUT = 3  # a node's image column and row (right / forward, up / forward) and log of its forward distance
+EDGE_LAYOUT = 3  # an edge's length, vertical offset (along the camera's up, m) and angle to the up direction (rad)
 # the original code's camera (config.py): fov_x = 1.0471975803375244, fov_y = 2 atan(H tan(fov_x / 2) / W),
 # f_h = 1000 tan(fov_y / 2), f_w = f_h W / H, at its fixed 1024x768
 MONOGRAPH_FOV_X = 1.0471975803375244
@@ -192,6 +201,50 @@ def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Dat
     if getattr(g, "pos", None) is not None:
         out.pos = g.pos
     return out
+
+
+def layout_graph(g: Data, projection: Optional[str], node_layout: bool, edge_layout: bool) -> Data:
+    """`g` (a graph of `at_threshold`) with its layout as features the encoder reads: with `node_layout` the
+    columns of `node_layout_features` after x's four (x becomes (N, 4 + NODE_LAYOUT)); with `edge_layout` the
+    edge attribute (length) followed by the vertical offset and the angle to up of each edge i -> j
+    (`edge_layout_features`, (E, EDGE_LAYOUT)). Both need node positions (`pos`): published graphs hold only
+    lengths, and asking for more of them is an error naming what is missing."""
+    if not (node_layout or edge_layout):
+        return g
+    pos = getattr(g, "pos", None)
+    if pos is None:
+        raise ValueError(f"graph of frame {g.frame!r} ({g.setting}) has no node positions (pos): the layout "
+                         "features (gcn.node_layout, gcn.edge_layout) need them; published graphs hold only "
+                         "edge lengths")
+    if projection not in FRAME_AXES:
+        raise ValueError(f"projection: expected one of {', '.join(FRAME_AXES)}, got {projection!r}")
+    out = g.clone()
+    if node_layout:
+        out.x = torch.cat([g.x, node_layout_features(pos, projection)], dim=1)
+    if edge_layout:
+        out.edge_attr = edge_layout_features(pos, g.edge_index, g.edge_attr, projection)
+    return out
+
+
+def node_layout_features(pos: torch.Tensor, projection: str) -> torch.Tensor:
+    """(N, NODE_LAYOUT): where each node sits in the image (right / forward and up / forward, the tangents of its
+    angles from the optical axis) and how far ahead (log of the forward distance in metres, at least 1 cm)."""
+    axes = pos.new_tensor(FRAME_AXES[projection])  # (3, 3): right, up, forward
+    ruf = pos @ axes.T
+    forward = ruf[:, 2:].clamp_min(1e-2)
+    return torch.cat([ruf[:, :2] / forward, forward.log()], dim=1)
+
+
+def edge_layout_features(pos: torch.Tensor, edge_index: torch.Tensor, length: torch.Tensor,
+                         projection: str) -> torch.Tensor:
+    """(E, EDGE_LAYOUT) of edges i -> j: length (the graph's edge attribute, m), vertical offset of j above i
+    along the camera's up (m), and the angle between the edge and the up direction (0: j straight above i, pi:
+    straight below; pi / 2 for a zero-length edge)."""
+    up = pos.new_tensor(FRAME_AXES[projection][1])
+    length = length.reshape(-1, 1)
+    rise = ((pos[edge_index[1]] - pos[edge_index[0]]) @ up).unsqueeze(1)
+    cosine = torch.where(length > 0, rise / length.clamp_min(1e-9), torch.zeros_like(rise)).clamp(-1, 1)
+    return torch.cat([length, rise, torch.arccos(cosine)], dim=1)
 
 
 def build_scene_graph(rgb, depth, semantic, camera: Camera, threshold: float, projection: str = "exact") -> Data:

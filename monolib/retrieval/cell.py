@@ -25,7 +25,7 @@ import torch
 
 from monolib import device as devices, methods, paths, versions
 from monolib.data import selection, stage as dataset
-from monolib.graphs import build as graph, stage as scenegraphs
+from monolib.graphs import stage as scenegraphs
 from monolib.io import (
     atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
 )
@@ -189,8 +189,8 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     if kind == "graph":
         spec = study.gcn_spec(method)
         graphs = scenegraphs.load(study, scenario, key=graph_key)
-        both = spec.edges == "both"
-        split = {k: [graph.at_threshold(g, threshold, both) for g in v] for k, v in graphs.items()}
+        projection = study.projection(scenario)
+        split = {k: [gcn.encoder_graph(g, threshold, spec, projection) for g in v] for k, v in graphs.items()}
         timings["graphs_s"] = time.perf_counter() - t
         t = time.perf_counter()
         result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads,

@@ -18,13 +18,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 from torch_geometric.data import Data
-from torch_geometric.nn import GATv2Conv, GCNConv, GINEConv, global_max_pool, global_mean_pool
+from torch_geometric.nn import (AttentionalAggregation, GATv2Conv, GCNConv, GINEConv, TransformerConv, global_max_pool,
+                                global_mean_pool)
 from torch_geometric.nn.conv.gcn_conv import gcn_norm
 
 from monolib.data.labels import NUM_CLASSES
 from monolib.device import device, seed_everything
-from monolib.graphs.build import NODE_FEATURES
-from monolib.params import GCNSpec
+from monolib.data.protocols import family
+from monolib.graphs.build import EDGE_LAYOUT, NODE_FEATURES, NODE_LAYOUT, at_threshold, layout_graph
+from monolib.params import TRANSFORMER_HEADS, GCNSpec
 
 log = logging.getLogger(__name__)
 
@@ -103,59 +105,111 @@ def normalised_adjacency(edge_index: torch.Tensor, weight: Optional[torch.Tensor
                                         check_invariants=False).coalesce().to_sparse_csr(),)
 
 
-class GraphEncoder(nn.Module):
-    """The paper's encoder by default; `GCNSpec`'s choice fields switch the variants of the encoder ablation."""
+def encoder_graph(g: Data, threshold: float, spec: GCNSpec, projection: Optional[str]) -> Data:
+    """The graph of a cached scene graph `g` (nodes and every pair) that the encoder of `spec` reads at
+    `threshold`: its edges (`at_threshold`, both directions unless `edges: upper`) and, with `node_layout` /
+    `edge_layout`, the layout features in the camera frame of `projection` (`layout_graph`)."""
+    return layout_graph(at_threshold(g, threshold, spec.edges == "both"), projection, spec.node_layout,
+                        spec.edge_layout)
 
-    def __init__(self, spec: GCNSpec, in_channels: int = NODE_FEATURES):
+
+class GraphEncoder(nn.Module):
+    """The paper's encoder by default; `GCNSpec`'s choice fields switch the variants of the encoder ablation.
+
+    Input columns: x = [NYU40 id, R, G, B] and, with `node_layout`, the node's image column, row and log depth
+    (`monolib.graphs.build.layout_graph`); edge_attr = [length] or, with `edge_layout`, [length, vertical offset,
+    angle to up]. Colours are standardised with the training set's statistics when `colour: standardised`, the
+    layout columns and edge attributes of the layout always (`set_colour_stats`)."""
+
+    def __init__(self, spec: GCNSpec, in_channels: Optional[int] = None):
         super().__init__()
         self.spec = spec
+        in_channels = in_channels or NODE_FEATURES + (NODE_LAYOUT if spec.node_layout else 0)
+        self.edge_dim = EDGE_LAYOUT if spec.edge_layout else 1
         label_dim = {"raw": 1, "embedding": 16, "onehot": NUM_CLASSES + 1}[spec.label]
         if spec.label == "embedding":
             self.label_embedding = nn.Embedding(NUM_CLASSES + 1, 16)
         self.register_buffer("colour_mean", torch.zeros(in_channels - 1))
         self.register_buffer("colour_std", torch.ones(in_channels - 1))
+        if spec.edge_layout:  # (only then: the state of every other encoder keeps its keys)
+            self.register_buffer("edge_mean", torch.zeros(self.edge_dim))
+            self.register_buffer("edge_std", torch.ones(self.edge_dim))
         dims = [label_dim + in_channels - 1] + [spec.hidden] * spec.layers
         if not spec.linear:
             dims[-1] = spec.out
         self.convs = nn.ModuleList(self._conv(a, b) for a, b in zip(dims[:-1], dims[1:]))
         self.lin = nn.Linear(spec.hidden, spec.out) if spec.linear else None
-        self.out_channels = spec.out * (2 if spec.pooling == "meanmax" else 1)
+        if spec.pooling == "attention":
+            self.attention = AttentionalAggregation(nn.Linear(spec.out, 1))
+        self.out_channels = spec.out * (2 if spec.pooling in ("meanmax", "attention") else 1)
+        if spec.pair_readout:  # (label, colour[, layout]) of both ends and the edge's features -> out, mean + max
+            self.pair_mlp = nn.Sequential(nn.Linear(2 * dims[0] + self.edge_dim, spec.hidden), nn.ReLU(),
+                                          nn.Linear(spec.hidden, spec.out))
+            self.out_channels += 2 * spec.out
 
     def _conv(self, a: int, b: int) -> nn.Module:
         if self.spec.conv == "gine":
-            return GINEConv(nn.Sequential(nn.Linear(a, b), nn.ReLU(), nn.Linear(b, b)), edge_dim=1)
+            return GINEConv(nn.Sequential(nn.Linear(a, b), nn.ReLU(), nn.Linear(b, b)), edge_dim=self.edge_dim)
         if self.spec.conv == "gatv2":
-            return GATv2Conv(a, b, heads=1, edge_dim=1)
+            return GATv2Conv(a, b, heads=1, edge_dim=self.edge_dim)
+        if self.spec.conv == "transformer":  # relative-position attention: the edge's geometry in keys and values
+            heads = TRANSFORMER_HEADS if b % TRANSFORMER_HEADS == 0 else 1
+            return TransformerConv(a, b // heads, heads=heads, edge_dim=self.edge_dim, root_weight=True)
         return GCNConv(a, b, normalize=False)  # `normalised_adjacency`, once per batch in `forward`
 
     def set_colour_stats(self, graphs: list[Data]) -> None:
-        """Training-set mean and std of the colour features (used when `colour: standardised`)."""
+        """Training-set mean and std of the colour and layout columns of x (colours used when `colour:
+        standardised`, the layout always) and, with `edge_layout`, of the edge attributes."""
         xs = [g.x[:, 1:] for g in graphs if g.num_nodes]
         if xs:
             c = torch.cat(xs)
             self.colour_mean.copy_(c.mean(0))
-            self.colour_std.copy_(c.std(0).clamp_min(1e-6))
+            self.colour_std.copy_(c.std(0).nan_to_num(1.0).clamp_min(1e-6))
+        if self.spec.edge_layout:
+            es = [g.edge_attr for g in graphs if g.edge_attr is not None and len(g.edge_attr)]
+            if es:
+                e = torch.cat(es)
+                self.edge_mean.copy_(e.mean(0))
+                self.edge_std.copy_(e.std(0).nan_to_num(1.0).clamp_min(1e-6))
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
-        label, colour = x[:, :1], x[:, 1:]
+        label, colour, layout = x[:, :1], x[:, 1:NODE_FEATURES], x[:, NODE_FEATURES:]
         if self.spec.label == "embedding":
             label = self.label_embedding(label[:, 0].long().clamp(0, NUM_CLASSES))
         elif self.spec.label == "onehot":
             label = F.one_hot(label[:, 0].long().clamp(0, NUM_CLASSES), NUM_CLASSES + 1).float()
         if self.spec.colour == "standardised":
-            colour = (colour - self.colour_mean) / self.colour_std
-        return torch.cat([label, colour], dim=1)
+            colour = (colour - self.colour_mean[:NODE_FEATURES - 1]) / self.colour_std[:NODE_FEATURES - 1]
+        if layout.shape[1]:
+            layout = (layout - self.colour_mean[NODE_FEATURES - 1:]) / self.colour_std[NODE_FEATURES - 1:]
+        return torch.cat([label, colour, layout], dim=1)
+
+    def edge_features(self, batch: GraphBatch) -> torch.Tensor:
+        """(E, edge_dim): the edge attributes (lengths, or the layout's three columns standardised)."""
+        if batch.edge_attr is None:
+            return batch.x.new_zeros((batch.edge_index.shape[1], self.edge_dim))
+        if batch.edge_attr.shape[1] != self.edge_dim:
+            raise ValueError(f"edge attributes of {batch.edge_attr.shape[1]} columns, the encoder reads "
+                             f"{self.edge_dim} (gcn.edge_layout: {self.spec.edge_layout})")
+        if self.spec.edge_layout:
+            return (batch.edge_attr - self.edge_mean) / self.edge_std
+        return batch.edge_attr
 
     def forward(self, batch: GraphBatch) -> torch.Tensor:
         """(num_graphs, out) embeddings of a `GraphBatch` or a `torch_geometric.data.Batch`."""
         h = self.features(batch.x)
-        length = batch.edge_attr if batch.edge_attr is not None else batch.x.new_zeros((batch.edge_index.shape[1], 1))
-        if self.spec.conv not in ("gine", "gatv2"):
-            weight = 1.0 / (1.0 + length[:, 0]) if self.spec.edge_weight == "inverse" else None
+        edges = self.edge_features(batch)
+        pairs = self.pair_readout(h, batch, edges) if self.spec.pair_readout else None
+        if not self.spec.message_passing:  # each node alone: the convolutions see no edge
+            batch = GraphBatch(batch.x, batch.edge_index[:, :0], None, batch.batch, batch.num_graphs)
+            edges = edges[:0]
+        if self.spec.conv not in ("gine", "gatv2", "transformer"):
+            length = batch.edge_attr[:, 0] if batch.edge_attr is not None else edges[:, 0]  # metres, as built
+            weight = 1.0 / (1.0 + length) if self.spec.edge_weight == "inverse" else None
             adjacency = normalised_adjacency(batch.edge_index, weight, h.size(0), h.dtype)
         for i, conv in enumerate(self.convs):
-            if self.spec.conv in ("gine", "gatv2"):
-                h = conv(h, batch.edge_index, length)
+            if self.spec.conv in ("gine", "gatv2", "transformer"):
+                h = conv(h, batch.edge_index, edges)
             else:
                 h = conv(h, *adjacency)
             if i < len(self.convs) - 1 or self.lin is not None:  # no ReLU on a last conv that maps to the output
@@ -166,7 +220,19 @@ class GraphEncoder(nn.Module):
         pooled = global_max_pool(h, batch.batch, size=batch.num_graphs)
         if self.spec.pooling == "meanmax":
             pooled = torch.cat([global_mean_pool(h, batch.batch, size=batch.num_graphs), pooled], dim=1)
-        return pooled
+        elif self.spec.pooling == "attention":
+            pooled = torch.cat([self.attention(h, batch.batch, dim_size=batch.num_graphs), pooled], dim=1)
+        return pooled if pairs is None else torch.cat([pooled, pairs], dim=1)
+
+    def pair_readout(self, h: torch.Tensor, batch: GraphBatch, edges: torch.Tensor) -> torch.Tensor:
+        """(num_graphs, 2 out): mean and max over each graph's edges i -> j of MLP([h_i, h_j, edge features]), the
+        relation of two objects (which labels, which colours, how far apart, which one above); a graph without
+        edges gives zeros."""
+        src, dst = batch.edge_index
+        m = self.pair_mlp(torch.cat([h[src], h[dst], edges], dim=1))
+        graph = batch.batch[src]
+        return torch.cat([global_mean_pool(m, graph, size=batch.num_graphs),
+                          global_max_pool(m, graph, size=batch.num_graphs)], dim=1)
 
 
 def draw_triplets(settings: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -191,6 +257,57 @@ def draw_triplets(settings: np.ndarray, rng: np.random.Generator) -> tuple[np.nd
     negative_sorted = np.where(r >= starts[group_of_sorted], r + size, r)
     anchor = order
     return anchor, order[positive_sorted], order[negative_sorted]
+
+
+def family_negatives(settings: np.ndarray, negative: np.ndarray, share: float,
+                     rng: np.random.Generator) -> np.ndarray:
+    """`negative` with a `share` of the anchors' negatives redrawn from their own family (`family`: the same
+    furniture and materials in another layout, the sibling of the `siblings` protocol): a random graph of another
+    setting of the anchor's family. Anchors whose family has no other setting keep their random negative.
+    Vectorised over anchors; the draws do not depend on which anchors qualify."""
+    settings = np.asarray(settings)
+    n = len(settings)
+    fam_code = np.unique([family(s) for s in settings], return_inverse=True)[1].reshape(-1)
+    set_code = np.unique(settings, return_inverse=True)[1].reshape(-1)
+    order = np.lexsort((set_code, fam_code))  # grouped by family, then setting
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    fam_size = np.bincount(fam_code)[fam_code]
+    set_size = np.bincount(set_code)[set_code]
+    fam_start = (np.cumsum(np.bincount(fam_code)) - np.bincount(fam_code))[fam_code]
+    set_start = np.full(n, n)
+    np.minimum.at(set_start, set_code, rank)  # where each setting's block begins in `order`
+    set_start = set_start[set_code]
+    others = fam_size - set_size  # graphs of the anchor's family in other settings
+    r = rng.integers(0, np.maximum(others, 1))
+    pick = fam_start + r
+    pick = np.where(pick >= set_start, pick + set_size, pick)
+    chosen = (rng.random(n) < share) & (others > 0)
+    out = np.array(negative, copy=True)
+    out[chosen] = order[pick[chosen]]
+    return out
+
+
+def family_batches(settings: np.ndarray, batch_size: int, rng: np.random.Generator,
+                   per_setting: int = 4) -> list[np.ndarray]:
+    """Batches of whole families: every setting of batch_size // (per_setting * settings per family) random
+    families, `per_setting` graphs each (P x K sampling over families), so that a batch-hard negative is often the
+    anchor's sibling. About every graph once per epoch."""
+    settings = np.asarray(settings)
+    names = np.unique(settings)
+    fams: dict[str, list[str]] = {}
+    for name in names:
+        fams.setdefault(family(name), []).append(name)
+    fam_names = sorted(fams)
+    members = {n: rng.permutation(np.flatnonzero(settings == n)) for n in names}
+    per_family = per_setting * max(1, round(len(names) / len(fam_names)))
+    p = min(len(fam_names), max(2, batch_size // per_family))
+    batches = []
+    for _ in range(max(1, len(settings) // (p * per_family))):
+        chosen = rng.choice(len(fam_names), size=p, replace=False)
+        batches.append(np.concatenate([rng.choice(members[n], size=per_setting, replace=len(members[n]) < per_setting)
+                                       for f in chosen for n in fams[fam_names[f]]]))
+    return batches
 
 
 def batch_hard_batches(settings: np.ndarray, batch_size: int, rng: np.random.Generator, per_setting: int = 4) -> list[np.ndarray]:
@@ -301,8 +418,9 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
     for epoch in range(1, spec.epochs + 1):
         model.train()
         losses, seen = [], 0
-        if spec.mining == "batch_hard":
-            for idx in batch_hard_batches(settings, spec.batch_size, rng):
+        if spec.mining in ("batch_hard", "batch_hard_family"):
+            draw = batch_hard_batches if spec.mining == "batch_hard" else family_batches
+            for idx in draw(settings, spec.batch_size, rng):
                 z = model(pool.batch(idx).to(dev))
                 loss = batch_hard_loss(z, settings[idx], spec.margin)
                 opt.zero_grad()
@@ -312,6 +430,8 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
                 seen += len(idx)
         else:
             a, p, n = draw_triplets(settings, rng)
+            if spec.mining == "family":
+                n = family_negatives(settings, n, spec.family_share, rng)
             perm = rng.permutation(len(a))
             for s in range(0, len(perm), spec.batch_size):
                 idx = perm[s : s + spec.batch_size]
