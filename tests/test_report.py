@@ -653,6 +653,88 @@ def test_report_of_two_protocols(two):
     assert {k: p.read_bytes() for k, p in again.items()} == {k: p.read_bytes() for k, p in written.items()}
 
 
+def confusion_rankings() -> pd.DataFrame:
+    """Siblings top-1 matches of gcn s1 at 1 m over two seeds, 6 queries: 3 right, 2 to the sibling setting (same
+    family ai_030), 1 to another family; with rows the confusions must not count (rank 2, the paper protocol,
+    another threshold of the same method)."""
+    S1, S2, T1 = "ai_030_001", "ai_030_002", "ai_031_001"
+    top = [(0, key(S1, 0), S1, key(S1, 90)), (0, key(S1, 1), S1, key(S2, 50)), (0, key(S2, 0), S2, key(S2, 90)),
+           (1, key(S1, 0), S1, key(S1, 91)), (1, key(S1, 1), S1, key(S2, 51)), (1, key(S2, 0), S2, key(T1, 50))]
+    rows = [("gcn", "s1", 1.0, sd, "siblings", q, qs, 1, m, m.split("/")[0], 0.1) for sd, q, qs, m in top]
+    rows += [("gcn", "s1", 1.0, sd, "siblings", q, qs, 2, key(T1, 60), T1, 0.2) for sd, q, qs, _ in top]
+    rows += [("gcn", "s1", 1.0, sd, "paper", q, qs, 1, key(T1, 61), T1, 0.1) for sd, q, qs, _ in top]
+    rows += [("gcn", "s1", math.inf, sd, "siblings", q, qs, 1, key(T1, 62), T1, 0.1) for sd, q, qs, _ in top]
+    rows += [("color_hist", "rgb", math.inf, 0, "siblings", key(S1, 0), S1, 1, key(S2, 52), S2, 0.1)]
+    cols = ["method", "scenario", "threshold", "seed", "protocol"] + results.RANKING_COLUMNS
+    return pd.DataFrame(rows, columns=cols).sample(frac=1.0, random_state=0)     # row order does not matter
+
+
+def protocols_rows(protocols=("paper", "siblings")) -> pd.DataFrame:
+    rows = [(m, sc, t, p, "recall", 1, 50.0, 40.0, 60.0, 2, 4, 3) for m, sc, t in
+            (("gcn", "s1", 1.0), ("color_hist", "rgb", math.inf)) for p in protocols]
+    return pd.DataFrame(rows, columns=statistics.PROTOCOLS_COLUMNS)
+
+
+def test_siblings_confusions_by_hand():
+    c = statistics.siblings_confusions(confusion_rankings(), protocols_rows())
+    assert list(c.columns) == statistics.CONFUSION_COLUMNS
+    assert list(zip(c["method"], c["threshold"])) == [("gcn", 1.0), ("color_hist", math.inf)]    # the table's order
+    g = c.iloc[0]
+    assert (g["queries"], g["right"], g["sibling"], g["other"], g["n_seeds"]) == (6, 3, 2, 1, 2)
+    assert [round(g[k], 1) for k in ("share_right", "share_sibling", "share_other", "sibling_share_of_errors")] \
+        == [50.0, 33.3, 16.7, 66.7]
+    h = c.iloc[1]                                          # one query, to its sibling: every error in the family
+    assert (h["queries"], h["sibling"], h["share_sibling"], h["sibling_share_of_errors"]) == (1, 1, 100.0, 100.0)
+    md = tables.confusions_markdown(c, LABELS)
+    assert md.startswith("**Which settings the `siblings` protocol confuses**")
+    assert "| gcn | s1: GT depth, GT semantics | 1 | 6 | 50.0 | 33.3 | 16.7 | 66.7 |" in md
+    assert "| color_hist | RGB only |  | 1 | 0.0 | 100.0 | 0.0 | 100.0 |" in md
+
+
+def test_siblings_confusions_without_the_siblings_protocol_is_empty():
+    c = statistics.siblings_confusions(confusion_rankings(), protocols_rows(("paper",)))
+    assert c.empty and list(c.columns) == statistics.CONFUSION_COLUMNS
+    right = confusion_rankings()
+    right = right.assign(match_setting=right["query_setting"])        # every query right: no error to share
+    c = statistics.siblings_confusions(right, protocols_rows())
+    assert list(c["share_right"]) == [100.0, 100.0] and c["sibling_share_of_errors"].isna().all()
+    assert "| 100.0 | 0.0 | 0.0 | – |" in tables.confusions_markdown(c)
+
+
+def test_report_writes_the_siblings_confusions(two):
+    written = report.write_report(two, n_boot=200)
+    out = paths.figures_dir(two)
+    assert written["siblings_confusions_md"] == out / "siblings_confusions.md"
+    conf = pd.read_csv(written["siblings_confusions_csv"])
+    prot = pd.read_csv(written["protocols_csv"])
+    sib = prot[prot.protocol == "siblings"]
+    assert list(zip(conf.method, conf.threshold)) == list(zip(sib.method, sib.threshold))   # one row per table row
+    # by construction (draw_rankings) a miss goes to the next setting of SIBLING_SETTINGS: from ai_02x_001 to its
+    # sibling ai_02x_002, from ai_02x_002 to another family
+    for _, row in conf.iterrows():
+        top = []
+        for sd in (0, 1):
+            r = pd.read_csv(paths.cell_dir(two, row.method, row.scenario, row.threshold, sd) / "rankings.csv")
+            top.append(r[(r.protocol == "siblings") & (r["rank"] == 1)])
+        top = pd.concat(top)
+        miss = top[top.match_setting != top.query_setting]
+        n_sib = int(miss.query_setting.str.endswith("_001").sum())
+        assert (row.queries, row.right, row.sibling, row.other) == (len(top), len(top) - len(miss), n_sib,
+                                                                    len(miss) - n_sib)
+        assert row.share_sibling == pytest.approx(100.0 * n_sib / len(top), abs=1e-3)
+        assert row.sibling_share_of_errors == pytest.approx(100.0 * n_sib / len(miss), abs=1e-3)
+    md = written["siblings_confusions_md"].read_text()
+    g = conf[conf.method == "gcn"].iloc[0]
+    assert (f"| gcn | s1: GT depth, GT semantics | 1 | {g.queries} | {g.share_right:.1f} | {g.share_sibling:.1f} | "
+            f"{g.share_other:.1f} | {g.sibling_share_of_errors:.1f} |") in md
+
+
+def test_no_siblings_confusions_without_the_siblings_protocol(study):
+    written = report.write_report(study, n_boot=200)
+    assert not any(k.startswith("siblings_confusions") for k in written)
+    assert not list(paths.figures_dir(study).glob("siblings_confusions.*"))
+
+
 def test_a_study_of_the_paper_protocol_only_has_no_protocols_figure(study, capsys):
     written = report.write_report(study)
     assert "fig_protocols" not in written and "table1_siblings_md" not in written

@@ -465,6 +465,43 @@ def query_table(study_name: str, grid: Optional[Collection[str]] = None) -> pd.D
     return sort_rows(df, QUERY_KEYS)
 
 
+def rankings_table(study_name: str, grid: Optional[Collection[str]] = None,
+                   groups: Optional[Collection[tuple[str, str, float]]] = None, protocol: Optional[str] = None,
+                   max_rank: Optional[int] = None) -> pd.DataFrame:
+    """The ``rankings.csv`` rows of a study's cells with their keys: ``method, scenario, threshold, seed,
+    protocol`` and `RANKING_COLUMNS`; with `groups` only the cells of those ``(method, scenario, threshold)``, with
+    `protocol` only its rows, with `max_rank` only ranks up to it (``max_rank=1``: each query's top-1 match). A cell
+    without readable rankings is left out with a warning (as in `query_table`). Empty (those columns) when nothing
+    is left."""
+    keep = None if groups is None else {(str(m), str(sc), threshold_value(t)) for m, sc, t in groups}
+    parts = []
+    for f in cell_files(study_name, grid):
+        cell = io.read_json(f)
+        try:
+            base = (str(cell["method"]), str(cell["scenario"]), threshold_value(cell["threshold"]), int(cell["seed"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{f}: not a valid cell.json ({exc!r})") from exc
+        if keep is not None and base[:3] not in keep:
+            continue
+        try:
+            by_protocol = split_protocols(read_rankings(f.parent))
+        except (FileNotFoundError, ValueError, KeyError) as exc:
+            log.warning("%s: no rankings (%s); left out", f.parent, exc)
+            continue
+        for name, r in by_protocol.items():
+            if protocol is not None and name != protocol:
+                continue
+            check_columns(r, RANKING_COLUMNS, f"{f.parent / 'rankings.csv'}")
+            r = r[RANKING_COLUMNS]
+            if max_rank is not None:
+                r = r[r["rank"] <= max_rank]
+            parts.append(r.assign(method=base[0], scenario=base[1], threshold=base[2], seed=base[3], protocol=name))
+    keys = ["method", "scenario", "threshold", "seed", "protocol"]
+    if not parts:
+        return pd.DataFrame(columns=keys + RANKING_COLUMNS)
+    return pd.concat(parts, ignore_index=True)[keys + RANKING_COLUMNS]
+
+
 # ---- the paper's numbers ---------------------------------------------------------------------------------------
 
 def paper_tables() -> pd.DataFrame:

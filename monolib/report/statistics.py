@@ -1,5 +1,6 @@
 """The report's statistics: means over seeds, bootstrap intervals, paired tests, and the controlled comparisons
-built on them (encoder ablation, dim vs bright settings, depth scale, the two protocols side by side).
+built on them (encoder ablation, dim vs bright settings, depth scale, the two protocols side by side, which
+settings the ``siblings`` protocol confuses).
 
 Uncertainty
 -----------
@@ -29,8 +30,9 @@ from typing import Optional
 import numpy as np
 import pandas as pd
 
+from monolib.data.protocols import family
 from monolib.methods import METHODS
-from monolib.params import PAPER
+from monolib.params import PAPER, SIBLINGS
 from monolib.report.results import (
     METRICS, SUMMARY_KEYS, is_image, method_order, metric_cols, natural_key, only_protocol, sort_rows, split_metric,
     with_protocol
@@ -485,3 +487,51 @@ def protocols_table(qv: pd.DataFrame, iv: pd.DataFrame, hidden: frozenset | set 
         return out
     out["_img"] = [int(is_image(m, sc)) for m, sc in zip(out["method"], out["scenario"])]
     return sort_rows(out, ["_img", "scenario", "method", "protocol"]).drop(columns="_img").reset_index(drop=True)
+
+
+# ---- which settings the siblings protocol confuses -------------------------------------------------------------
+
+CONFUSION_COLUMNS = ["method", "scenario", "threshold", "protocol", "n_seeds", "queries", "right", "sibling", "other",
+                     "share_right", "share_sibling", "share_other", "sibling_share_of_errors"]
+
+
+def siblings_confusions(rankings: pd.DataFrame, table: pd.DataFrame, protocol: str = SIBLINGS) -> pd.DataFrame:
+    """Where the top-1 matches of the `protocol` (default ``siblings``) queries go, per row of the protocols table
+    (`table`: `protocols_table`; each method and scenario at the threshold it picked), over all seeds of that row.
+
+    `rankings`: rankings rows with their cell keys (``method, scenario, threshold, seed, protocol`` and
+    ``query, query_setting, rank, match, match_setting``; `monolib.report.results.rankings_table`). Each query's
+    rank-1 match is ``right`` (its own setting), ``sibling`` (another setting of its family,
+    `monolib.data.protocols.family`) or ``other`` (another family). Per row: ``queries`` (over seeds), the three
+    counts, their shares in percent and ``sibling_share_of_errors`` = 100 x sibling / (sibling + other) (NaN
+    without errors). Rows in the order of `table`; empty (columns `CONFUSION_COLUMNS`) when `table` has no row of
+    `protocol`. Columns `CONFUSION_COLUMNS`."""
+    keys = ["method", "scenario", "threshold"]
+    rows = with_protocol(table)
+    rows = rows.loc[rows["protocol"] == protocol, keys].drop_duplicates().reset_index(drop=True)
+    if rows.empty or rankings.empty:
+        return pd.DataFrame(columns=CONFUSION_COLUMNS)
+    top = rankings[(with_protocol(rankings)["protocol"] == protocol) & (rankings["rank"] == 1)]
+    top = top.assign(threshold=top["threshold"].astype(float)).merge(
+        rows.assign(threshold=rows["threshold"].astype(float), _row=np.arange(len(rows))), on=keys)
+    if top.empty:
+        return pd.DataFrame(columns=CONFUSION_COLUMNS)
+    settings = pd.unique(pd.concat([top["query_setting"], top["match_setting"]]).astype(str))
+    fam = pd.Series({s: family(s) for s in settings})           # one call per setting, not per query
+    q_set, m_set = top["query_setting"].astype(str), top["match_setting"].astype(str)
+    kind = np.select([(m_set == q_set).to_numpy(), (m_set.map(fam) == q_set.map(fam)).to_numpy()],
+                     ["right", "sibling"], "other")
+    counts = (pd.crosstab(top["_row"], kind).reindex(columns=["right", "sibling", "other"], fill_value=0)
+              .astype(int))
+    out = rows.iloc[counts.index].reset_index(drop=True)
+    out.insert(3, "protocol", protocol)
+    out.insert(4, "n_seeds", top.groupby("_row")["seed"].nunique().reindex(counts.index).to_numpy())
+    c = counts.reset_index(drop=True)
+    out["queries"] = c.sum(axis=1).to_numpy()
+    for k in ("right", "sibling", "other"):
+        out[k] = c[k].to_numpy()
+    for k in ("right", "sibling", "other"):
+        out[f"share_{k}"] = 100.0 * out[k] / out["queries"]
+    errors = out["sibling"] + out["other"]
+    out["sibling_share_of_errors"] = (100.0 * out["sibling"] / errors.where(errors > 0)).astype(float)
+    return out[CONFUSION_COLUMNS]

@@ -1,5 +1,6 @@
-"""The report's tables: Table 1 (recall@k) and Table 2 (precision@k) in markdown, csv and TeX, the encoder ablation
-and the two protocols side by side in markdown, and how a threshold, a mean and an interval are printed.
+"""The report's tables: Table 1 (recall@k) and Table 2 (precision@k) in markdown, csv and TeX, the encoder ablation,
+the two protocols side by side and the siblings protocol's confusions in markdown, and how a threshold, a mean and
+an interval are printed.
 
 Table 1 and 2 follow the paper's layout: one row per method / scenario x threshold, image baselines below
 ("RGB only"); columns k (ours: mean ± std over seeds, the 95 % bootstrap interval, a dagger on thresholds
@@ -455,5 +456,31 @@ def protocols_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[st
         for p in protos:
             line.append(f"{g.loc[p, 'mean']:.1f} {fmt_ci(g.loc[p, 'ci_lo'], g.loc[p, 'ci_hi'])}" if p in g.index
                         else "–")
+        lines.append("| " + " | ".join(line) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def confusions_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None) -> str:
+    """``siblings_confusions.md`` of `monolib.report.statistics.siblings_confusions`: one row per method (and
+    scenario) of the protocols table, where its ``siblings`` queries' top-1 matches go (percent of queries over
+    seeds) and the sibling share of its errors."""
+    labels = dict(scenario_labels or {})
+    protocol = _protocol_of(table) if len(table) else SIBLINGS
+    head = ["method", "data", "threshold (m)", "queries", "right (%)", "sibling (%)", "other (%)",
+            "sibling share of errors (%)"]
+    pct = lambda x: f"{x:.1f}" if np.isfinite(x) else "–"
+    lines = [f"**Which settings the `{protocol}` protocol confuses**, from the same cells as the protocols table "
+             f"(graph methods at the threshold with the best `paper` recall@1 of their scenario). Each query's top-1 "
+             f"match is *right* (a frame of its own setting), *sibling* (a frame of the other setting of its family: "
+             f"same furniture and materials, another layout) or *other* (a frame of another family); shares of the "
+             f"queries of all seeds. Sibling share of errors: sibling / (sibling + other), the errors a query makes "
+             f"in its own family.", "",
+             "| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * (len(head) - 3)) + "|"]
+    for _, r in table.iterrows():
+        image = is_image(r["method"], r["scenario"])
+        line = [r["method"], "RGB only" if image else f"{r['scenario']}: {labels.get(r['scenario'], r['scenario'])}",
+                "" if image else threshold_label(float(r["threshold"])), f"{int(r['queries'])}",
+                pct(r["share_right"]), pct(r["share_sibling"]), pct(r["share_other"]),
+                pct(float(r["sibling_share_of_errors"]))]
         lines.append("| " + " | ".join(line) + " |")
     return "\n".join(lines) + "\n"

@@ -23,7 +23,7 @@ from typing import Optional
 import pandas as pd
 
 from monolib import io, params, paths
-from monolib.params import PAPER
+from monolib.params import PAPER, SIBLINGS
 from monolib.report import figures, results, statistics, tables
 from monolib.retrieval import grid
 
@@ -59,6 +59,9 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     - ``fig_protocols.png`` + ``protocols.{csv,md}``: recall@1 of each method on both protocols
       (`monolib.report.statistics.protocols_table`;
       when the cells have more than one protocol);
+    - ``siblings_confusions.{md,csv}``: per row of the protocols table, where the ``siblings`` queries' top-1
+      matches go (own setting, the sibling setting of its family, another family; over seeds;
+      `monolib.report.statistics.siblings_confusions`), when the protocols table has the ``siblings`` protocol;
     - ``recall_vs_threshold.png`` (error bars: the intervals) and ``fig5_matches.png`` (skipped when `rgb_of` is
       None or the study has no `method` cell), ``paper`` protocol;
     - ``encoder_ablation.{md,csv}`` when the study has encoder variants (``paper`` protocol);
@@ -138,6 +141,16 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
         io.write_text(out / "protocols.md", tables.protocols_markdown(table, labels, n_boot))
         written["protocols_csv"], written["protocols_md"] = out / "protocols.csv", out / "protocols.md"
         written["fig_protocols"] = figures.fig_protocols(table, out / "fig_protocols.png", n_boot=n_boot)
+        sib = table[table["protocol"] == SIBLINGS]
+        if len(sib):
+            groups = set(zip(sib["method"], sib["scenario"], sib["threshold"]))
+            top1 = results.rankings_table(study_name, cells, groups, protocol=SIBLINGS, max_rank=1)
+            conf = statistics.siblings_confusions(top1, table)
+            if len(conf):
+                io.write_text(out / "siblings_confusions.csv", tables.csv_text(conf))
+                io.write_text(out / "siblings_confusions.md", tables.confusions_markdown(conf, labels))
+                written["siblings_confusions_csv"] = out / "siblings_confusions.csv"
+                written["siblings_confusions_md"] = out / "siblings_confusions.md"
     else:
         print(f"{study_name}: one protocol only (protocol.siblings: 0): fig_protocols.png not drawn")
 
