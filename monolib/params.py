@@ -154,6 +154,8 @@ class Variant:
     scenarios: Optional[list[str]] = None    # default: every scenario in the tables
     thresholds: Optional[list[float]] = None # default: the study's thresholds
     description: str = ""
+    ablation_of: Optional[str] = None        # the graph method this variant switches one part of: the report's
+                                             # ablation_<that method>.md sets it against that method, both protocols
 
 
 TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
@@ -474,6 +476,9 @@ def _check(study: Study, check_files: bool = True) -> None:
         for sc in v.scenarios or []:
             if sc not in study.scenarios:
                 bad(f"variants.{vname}.scenarios", f"unknown scenario {sc!r}")
+        if v.ablation_of is not None and v.ablation_of not in study.graph_methods():
+            bad(f"variants.{vname}.ablation_of", f"expected a graph method of the study "
+                f"({', '.join(study.graph_methods())}), got {v.ablation_of!r}")
     for where, g in specs.items():
         for key, allowed in choices.items():
             if getattr(g, key) not in allowed:

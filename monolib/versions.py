@@ -96,10 +96,20 @@ def module_file(module: str) -> Path:
     return path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
 
 
-@functools.lru_cache(maxsize=None)
 def module_version(module: str) -> str:
-    """`source_version` of one module (`module_file`), its `PRESENTATION_FUNCTIONS` left out."""
+    """`source_version` of one module (`module_file`), its `PRESENTATION_FUNCTIONS` left out; computed once per
+    state of its file (`file_version`)."""
     path = module_file(module)
+    st = path.stat()
+    return file_version(module, str(path), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=None)
+def file_version(module: str, path: str, mtime_ns: int, size: int) -> str:
+    """`module_version` of `module` whose file `path` has this modification time and size: cached by them, so that
+    the cache cannot hold a changed file's hash, and a warm kernel keeps it from cell to cell
+    (`monolib.study.kernels.reset_kernel`: parsing the stages' modules took about 0.5 s a cell)."""
+    path = Path(path)
     text = path.read_text()
     drop = PRESENTATION_FUNCTIONS.get(module)
     if drop:

@@ -214,7 +214,7 @@ def test_source_version_ignores_comments_and_docstrings_but_not_code():
 def test_a_changed_graph_builder_gives_new_graph_and_cell_keys_only(study, monkeypatch):
     before = {"model": perception.model_key(study, "deeplab"), "graphs": scenegraphs.scenario_key(study, "s1"),
               "cell": cell.cell_key(study, "gcn", "s1", 1.0, 0), "data": dataset.dataset_key(study)}
-    real = versions.module_version.__wrapped__
+    real = versions.module_version
     monkeypatch.setattr(versions, "module_version",
                         lambda m: real(m) + ("-changed" if m == "graphs.build" else ""))
     versions.code_version.cache_clear()

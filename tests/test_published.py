@@ -201,6 +201,10 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
         edges[method] = r["test_edges_mean"]
     # gcn_published (edges: upper) encodes each pair once, i < j; the others both directions
     assert edges["ours"] == edges["gine"] == edges["batch_hard"] == 2 * edges["gcn_published"] > 0
+    # quick's `layout` encoder on published graphs: its pair readout reads their lengths (no positions), every pair
+    r = cell.run_cell(s, "layout", "s1", float("inf"), 0, out_dir=str(tmp_path / "layout"))
+    assert r["encoder"]["pair_readout"] and not (r["encoder"]["edge_layout"] or r["encoder"]["node_layout"])
+    assert r["test_edges_mean"] >= edges["ours"] and 0 <= r["metrics"]["paper"]["recall@1"] <= 100
 
 
 SAMPLE = published.Path(__file__).resolve().parents[2] / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"

@@ -795,3 +795,30 @@ def grid_names(s):
     from monolib.retrieval import grid
 
     return grid.names(s)
+
+
+def test_an_ablation_of_a_method_on_both_protocols(two, monkeypatch):
+    """A variant that names `ablation_of: gcn` gets ablation_gcn.md/csv: each protocol's table, the variant against
+    gcn on the same seeds, settings and queries (the paired difference is the difference of the two means)."""
+    import dataclasses
+
+    from monolib.params import Variant, load_study
+
+    monkeypatch.setitem(P2, ("part", "s1", 1.0), (0.6, 0.7))
+    for sd in (0, 1):
+        write_two_protocol_cell("two", "part", "s1", 1.0, sd)
+    smoke = load_study("smoke", check_files=False)
+    study = dataclasses.replace(smoke, name="two", variants={"part": Variant(gcn={"pooling": "meanmax"},
+                                                                             ablation_of="gcn", description="p")})
+    written = report.write_report(two, study=study, n_boot=200)
+    table = pd.read_csv(written["ablation_gcn_csv"])
+    assert set(table["protocol"]) == {"paper", "siblings"}
+    assert set(table["method"]) == {"gcn", "part"} and set(table["threshold"]) == {1.0}
+    iv = pd.read_csv(written["intervals"])
+    for p in ("paper", "siblings"):
+        mine = table[(table.method == "part") & (table.protocol == p) & (table.metric == "recall") & (table.k == 1)]
+        means = iv[(iv.protocol == p) & (iv.scenario == "s1") & (iv.threshold == 1.0) & (iv.metric == "recall")
+                   & (iv.k == 1)].set_index("method")["mean"]
+        assert mine["diff_vs_base"].iloc[0] == pytest.approx(means["part"] - means["gcn"], abs=1e-6)
+    md = written["ablation_gcn_md"].read_text()
+    assert "Ablation of `gcn`, protocol `paper`" in md and "Ablation of `gcn`, protocol `siblings`" in md

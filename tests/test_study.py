@@ -216,6 +216,45 @@ def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path, 
     assert json.loads((tmp_path / "inf" / "cell.json").read_text())["threshold"] == "inf"
 
 
+def test_the_layout_encoder_localizes_a_frame_of_its_database(smoke_study, tmp_path):
+    """quick's `layout` encoder (pair readout, nodes without message passing, batch-hard over families) trained as a
+    cell of the smoke study's data (s3: predicted depth and semantics, every pair an edge): the localizer rebuilds
+    the cell's test embeddings from the cached graphs, and the RGB of one of its frames, through perception, the
+    graph and the encoder, finds that frame first."""
+    import cv2
+    import torch
+
+    from monolib import localize
+    from monolib.data import selection, stage as dataset
+    from monolib.graphs import stage as scenegraphs
+    from monolib.retrieval import gcn
+    from monolib.retrieval.cell import run_cell
+
+    data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
+    data["variants"] = {"layout": {"gcn": yaml.safe_load((paths.PARAMS / "quick.yaml").read_text())["variants"]
+                                   ["layout"]["gcn"], "thresholds": [math.inf], "scenarios": ["s3"]}}
+    study_path = tmp_path / "smoke_layout.yaml"
+    study_path.write_text(yaml.safe_dump(data, sort_keys=False))
+    s = load_study(study_path)
+    cell = tmp_path / "cell"
+    record = run_cell(s, "layout", "s3", math.inf, 0, out_dir=str(cell))
+    assert record["encoder"]["pair_readout"] and not record["encoder"]["message_passing"]
+    spec = s.gcn_spec("layout")
+    model = gcn.GraphEncoder(spec)
+    model.load_state_dict(torch.load(cell / "model.pt", weights_only=True))
+    test = [gcn.encoder_graph(g, math.inf, spec, s.projection("s3")) for g in scenegraphs.load(s, "s3")["test"]]
+    emb = gcn.embed(model, test).numpy()
+    np.testing.assert_array_equal(emb, np.load(cell / "embeddings.npy"))
+    db = localize.write_database(tmp_path / "db", s, {**record, "folder": str(cell)}, model.state_dict(),
+                                 [g.frame for g in test], [g.setting for g in test], emb)
+    frame = selection.select_frames(s, dataset.open_dataset(s), s.gcn.val_settings).test[3]
+    same = tmp_path / "same.png"
+    cv2.imwrite(str(same), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+    first, second = localize.localize([str(same)], db, k=3)[0]["matches"][:2]
+    assert first["frame"] == frame.key and first["setting"] == frame.setting, first
+    assert first["distance"] < 0.5 * second["distance"], (first, second)
+
+
 def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
     import cv2
 

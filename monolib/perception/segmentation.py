@@ -350,6 +350,15 @@ def scores(conf: np.ndarray) -> dict:
 
 # ---- training and inference --------------------------------------------------------------------------------
 
+def for_inference(model: nn.Module) -> nn.Module:
+    """`model` (in place) with its weights in the channels-last memory format, for prediction only: its
+    convolutions run about 2.4 times faster on the CPU (42 -> 17 ms a 256x192 frame on 2 threads of the project's
+    AMD EPYC, 2026-12-02; quick's perception stage predicted its 1,944 frames in 71 s instead of 115 s) and gave
+    the same class as the default layout for all but 4 of their 95.6 million pixels (a tie of two classes' logits
+    rounded the other way). Never during training (another layout may round the gradients otherwise)."""
+    return model.to(memory_format=torch.channels_last)
+
+
 @torch.inference_mode()
 def predict(model: nn.Module, rgb, batch_size: int = 8, amp: bool = False) -> np.ndarray:
     """uint8 images (N, H, W, 3), a numpy array or a tensor (`as_images`) -> int16 (N, H, W) NYU40 ids 1..40 (numpy),

@@ -319,6 +319,8 @@ def predict_frames(model, task: str, frames, spec, write: Callable, progress: bo
     import torch
 
     predict = seg.predict if task == "segmentation" else dep.predict
+    if task == "segmentation":
+        model = seg.for_inference(model)
     dev = next(model.parameters()).device
     seconds, done = 0.0, 0
     with torch.inference_mode():
@@ -601,4 +603,4 @@ def load_trained(study: Study, name: str):
     if model is None:
         raise io.DataFileError(f"{path}: model {name!r} is not trained (or its file was unreadable); run "
                                f"`monolib perception {study.path or study.name}` first")
-    return model.eval()
+    return (seg.for_inference(model) if task == "segmentation" else model).eval()

@@ -365,7 +365,7 @@ def write_tables(results: pd.DataFrame, out_dir: str | Path,
 # ---- the encoder ablation and the two protocols ----------------------------------------------------------------
 
 def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
-                      base: str = "gcn", n_boot: int = N_BOOT) -> str:
+                      base: str = "gcn", n_boot: int = N_BOOT, title: str = "Encoder ablation.") -> str:
     """``encoder_ablation.md`` of `monolib.report.statistics.encoder_ablation`: rows = method x (scenario, threshold)
     (the base first), columns = each metric's ``mean [lo, hi]`` and its paired difference to the base
     ``Δ [lo, hi]`` (* when significant)."""
@@ -374,7 +374,7 @@ def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str
     head = ["method", "data", "threshold (m)"]
     for c in metrics:
         head += [c, f"Δ {c} vs {base}"]
-    lines = [f"**Encoder ablation.** Mean over seeds [95% bootstrap interval: {n_boot} resamples of test settings, "
+    lines = [f"**{title}** Mean over seeds [95% bootstrap interval: {n_boot} resamples of test settings, "
              f"queries and seeds]. Δ: paired difference to `{base}` on the same seeds, settings and queries "
              f"[95% paired bootstrap interval]; {STAR}: the interval excludes 0 (no correction for multiple "
              f"comparisons).", "",

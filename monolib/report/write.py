@@ -41,6 +41,15 @@ def _load_study(study_name: str):
         return None
 
 
+def _ablations_of(study) -> dict[str, list[str]]:
+    """{method: the variants of the study that switch one part of it (`Variant.ablation_of`)}."""
+    out: dict[str, list[str]] = {}
+    for name, v in (getattr(study, "variants", None) or {}).items():
+        if v.ablation_of:
+            out.setdefault(v.ablation_of, []).append(name)
+    return out
+
+
 def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
                  scenario_labels: Optional[Mapping[str, str]] = None, method: str = "gcn", study=None,
                  n_boot: int = statistics.N_BOOT) -> dict[str, Path]:
@@ -65,6 +74,8 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     - ``recall_vs_threshold.png`` (error bars: the intervals) and ``fig5_matches.png`` (skipped when `rgb_of` is
       None or the study has no `method` cell), ``paper`` protocol;
     - ``encoder_ablation.{md,csv}`` when the study has encoder variants (``paper`` protocol);
+    - ``ablation_<method>.{md,csv}`` for each method that variants name in ``ablation_of`` (each of its parts
+      switched, against it, on every protocol);
     - ``recall_by_light.png`` + ``light.csv`` when the dataset records dim settings (``monolib_synth.json``;
       ``paper`` protocol);
     - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``
@@ -163,6 +174,20 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
         io.write_text(out / "encoder_ablation.csv", tables.csv_text(ablation))
         written["encoder_ablation_md"] = out / "encoder_ablation.md"
         written["encoder_ablation_csv"] = out / "encoder_ablation.csv"
+
+    for base, parts in _ablations_of(study).items():  # a method's parts switched one at a time, both protocols
+        tabs = {p: statistics.encoder_ablation(qv_all[qv_all["method"].isin([base, *parts])],
+                                               iv_all[iv_all["method"].isin([base, *parts])], boots[p], study,
+                                               base=base, protocol=p) for p in results.protocols_in(qv_all)}
+        tabs = {p: t for p, t in tabs.items() if len(t)}
+        if tabs:
+            md = "\n".join(tables.ablation_markdown(t, labels, base, n_boot, title=f"Ablation of `{base}`, protocol "
+                                                    f"`{p}`: each variant switches one of its parts.")
+                           for p, t in tabs.items())
+            io.write_text(out / f"ablation_{base}.md", md)
+            io.write_text(out / f"ablation_{base}.csv", tables.csv_text(pd.concat(tabs.values(), ignore_index=True)))
+            written[f"ablation_{base}_md"], written[f"ablation_{base}_csv"] = (out / f"ablation_{base}.md",
+                                                                               out / f"ablation_{base}.csv")
 
     twins = statistics.projection_table(qv, iv, boot, info)
     if len(twins):

@@ -150,7 +150,8 @@ def reset_kernel(used: bool) -> None:
     """Run inside a warm kernel before each notebook. The first time (`used` False) it records the kernel's starting
     state; afterwards it restores it: the user namespace emptied, the working directory and environment variables
     as at the start, matplotlib's figures closed and rcParams restored, every functools cache of monolib cleared.
-    Kept: the graphs files this kernel has read (`monolib.graphs.stage._READ`, by path, inode, mtime and size: a
+    Kept: the source hashes of `monolib.versions.file_version` (keyed by each file's modification time and size),
+    and the graphs files this kernel has read (`monolib.graphs.stage._READ`, by path, inode, mtime and size: a
     file's content, never stale), so that a scenario's cells in a row read its file once."""
     import functools
     import sys
@@ -171,11 +172,13 @@ def reset_kernel(used: bool) -> None:
     if "matplotlib.pyplot" in sys.modules:
         sys.modules["matplotlib.pyplot"].close("all")
     matplotlib.rcParams.update(_start_state["rc"])
+    from monolib import versions
+
     for name, module in list(sys.modules.items()):
         if name == "monolib" or name.startswith("monolib."):
             for value in list(vars(module).values()):
-                if isinstance(value, functools._lru_cache_wrapper):
-                    value.cache_clear()
+                if isinstance(value, functools._lru_cache_wrapper) and value is not versions.file_version:
+                    value.cache_clear()  # (file_version: keyed by each file's mtime and size, never stale)
 
 
 def execute(notebook: str, output: str, parameters: dict, timeout: int, cwd: str, env: dict[str, str],
