@@ -25,6 +25,8 @@ import os
 import threading
 from typing import Optional
 
+from monolib import versions
+
 log = logging.getLogger(__name__)
 ENGINE = "monolib_warm"
 _local = threading.local()  # one kernel per worker thread (a local process, or a Dask worker's thread)
@@ -172,8 +174,6 @@ def reset_kernel(used: bool) -> None:
     if "matplotlib.pyplot" in sys.modules:
         sys.modules["matplotlib.pyplot"].close("all")
     matplotlib.rcParams.update(_start_state["rc"])
-    from monolib import versions
-
     for name, module in list(sys.modules.items()):
         if name == "monolib" or name.startswith("monolib."):
             for value in list(vars(module).values()):
