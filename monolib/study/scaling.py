@@ -126,8 +126,12 @@ def project(measured: dict, paper: str = "paper", variants_from: str = "ablation
     study = load_study(paper, check_files=False)
     train_graphs = PAPER_TRAIN_FRAMES
     cell_s = rate * train_graphs * study.gcn.epochs + overhead
-    extra = load_study(variants_from, check_files=False).variants
-    with_variants = dataclasses.replace(study, variants=extra)
+    extra = {}  # the other study's variants, on the paper study's scenarios (one of its own, e.g. s1_exact: left out)
+    for name, v in load_study(variants_from, check_files=False).variants.items():
+        kept = [sc for sc in v.scenarios if sc in study.scenarios] if v.scenarios else None
+        if kept is None or kept:
+            extra[name] = dataclasses.replace(v, scenarios=kept)
+    with_variants = dataclasses.replace(study, variants={**study.variants, **extra})
     counts = {}
     for label, s in (("paper", study), ("paper + encoder variants", with_variants)):
         counts[label] = sum(methods.kind(c.method, s) == "graph" for c in runner.grid(s))
