@@ -368,6 +368,64 @@ def test_loader_workers_change_no_prediction(tiny_study):
         assert_each_frame_has_its_own_prediction(task, model, frames, in_workers)
 
 
+def test_the_passes_read_each_frame_once_and_predict_the_same(tiny_study, monkeypatch):
+    """A `FrameRgb` shared by the stage's passes reads each frame's RGB once for all of them, and every network
+    predicts from it what it predicts from the files read by its own pass, bit for bit; frames that do not fit in
+    its memory are read again by every pass (and batched the same). Reads counted in the main process (0 loader
+    workers); `test_loader_workers_change_no_prediction` holds the workers' side."""
+    from monolib.perception import images, stage as perception
+
+    torch.set_num_threads(1)
+    frames = _frames(tiny_study).all()
+    tiny_study.perception.predict_batch = 5
+    tiny_study.perception.loader_workers = 0
+    reads = []
+    read = images.FrameImages.__getitem__
+    monkeypatch.setattr(images.FrameImages, "__getitem__", lambda self, i: reads.append(i) or read(self, i))
+    shared = images.FrameRgb(0)
+    nets = _untrained(tiny_study)
+    for name, task, model in nets:
+        assert perception._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
+        from_files = _read_predictions(tiny_study, name, frames)
+        for f in frames:
+            perception_path(tiny_study, name, f).unlink()
+        assert perception._predict_all(tiny_study, name, model, frames, progress=False, rgb=shared)[:2] == (len(frames),) * 2
+        held = _read_predictions(tiny_study, name, frames)
+        assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(from_files, held)), name
+    assert len(reads) == len(nets) * len(frames) + len(frames)  # each pass from the files, and the shared read once
+    assert shared.held.shape == (len(frames), *frames[0].rgb.shape) and shared.held.dtype == np.uint8
+
+    reads.clear()
+    small = images.FrameRgb(0, hold_bytes=(len(frames) - 1) * frames[0].rgb.nbytes)
+    batches = [[b.numpy() for b in small.batches(frames, 5, torch.device("cpu"))] for _ in range(2)]
+    assert len(reads) == 2 * len(frames) and small.held is None
+    expect = [shared.held[i : i + 5] for i in range(0, len(frames), 5)]
+    for got in batches:
+        assert len(got) == len(expect) and all(np.array_equal(a, b) for a, b in zip(got, expect))
+    reads.clear()
+    assert [b.numpy().tobytes() for b in shared.batches(frames[3:9], 4, torch.device("cpu"))] == \
+        [shared.held[3:7].tobytes(), shared.held[7:9].tobytes()] and not reads  # any run of the held frames
+
+
+def test_a_missing_colour_file_is_one_error_naming_it(tiny_study, tmp_path):
+    """A frame whose colour file is gone: one `DataFileError` naming the file and what its RGB was read for,
+    whether its pass holds the frames or reads them batch by batch."""
+    import shutil
+
+    from monolib.io import DataFileError
+    from monolib.perception import images
+
+    root = tmp_path / "dataset"
+    shutil.copytree(tiny_study.dataset_root, root)
+    tiny_study.dataset.root = str(root)
+    frames = _frames(tiny_study).test[:6]
+    gone = frames[4].files["color"]
+    gone.unlink()
+    for hold in (images.HOLD_BYTES, 0):
+        with pytest.raises(DataFileError, match=rf"{gone}: file not found \(the RGB of the test\)"):
+            list(images.FrameRgb(0, hold).batches(frames, 4, torch.device("cpu"), "the RGB of the test"))
+
+
 def assert_each_frame_has_its_own_prediction(task, model, frames, stored):
     """Each stored prediction is the model's prediction of that frame alone (a batch of one: equal up to the last
     bits that a batch's size moves on the CPU), and not another frame's: a prediction written to the wrong frame's
@@ -424,12 +482,12 @@ def test_a_stopped_run_predicts_only_the_missing_frames(tiny_study, monkeypatch)
 def test_predict_takes_a_tensor_batch_as_it_takes_numpy(tiny_study):
     """The DataLoader's uint8 (N, H, W, 3) tensor batch and the numpy array of the same frames predict the same, bit
     for bit; an image in another layout is one clear error."""
-    from monolib.perception import depth, segmentation, stage as perception
+    from monolib.perception import depth, images, segmentation
 
     torch.set_num_threads(1)
     frames = _frames(tiny_study).test[:5]
     rgb = np.stack([f.rgb for f in frames])
-    batch = next(iter(perception.image_loader(frames, tiny_study.perception, torch.device("cpu"))))
+    batch = next(iter(images.image_loader(frames, tiny_study.perception.predict_batch, 2, torch.device("cpu"))))
     assert batch.dtype == torch.uint8 and tuple(batch.shape) == rgb.shape and np.array_equal(batch.numpy(), rgb)
     for name, task, model in _untrained(tiny_study):
         predict = segmentation.predict if task == "segmentation" else depth.predict

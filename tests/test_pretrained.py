@@ -180,6 +180,17 @@ def test_a_frame_without_features_is_an_error_naming_the_file(smoke):
         features.load(study, sel.test[:1] + [Stranger()])
 
 
+def test_the_stored_features_are_the_trunk_on_the_frames_rgb(smoke):
+    """The features file (made by the study's stages from the perception stage's shared read of the frames,
+    `FrameRgb`) holds, bit for bit, the trunk's output on the frames' RGB read one by one: its first batch of
+    `features.BATCH` frames recomputed here."""
+    study, sel = smoke
+    frames = features.frames_of(study)[: features.BATCH]
+    trunk, _ = features.networks()
+    want = features.trunk_features(trunk, np.stack([f.rgb for f in frames]))
+    assert np.array_equal(features.load(study, frames), want)
+
+
 def test_every_selected_frame_has_features(smoke):
     """The features file holds the study's train, validation and test frames: 352 channels at stride 32."""
     study, sel = smoke

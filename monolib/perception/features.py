@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -32,6 +33,7 @@ from monolib.device import device
 from monolib.io import DataFileError, atomic_path, load_cached
 from monolib.params import Study, key_of
 from monolib.perception import imagenet
+from monolib.perception.images import FrameRgb
 from monolib.progress import tqdm
 
 log = logging.getLogger(__name__)
@@ -126,21 +128,24 @@ def rgb_batches(frames, batch: int, purpose: str):
         yield np.stack(rgb)
 
 
-def _load_or_compute(study: Study, ds=None, progress: bool = True) -> tuple[Path, dict]:
+def _load_or_compute(study: Study, ds=None, progress: bool = True,
+                     rgb: Optional[FrameRgb] = None) -> tuple[Path, dict]:
     """(path, content) of the study's features file, read once: computed and written first when absent (or
-    unreadable: removed and computed again)."""
+    unreadable: removed and computed again). `rgb`: where the frames' RGB comes from (`ensure`)."""
     path = features_path(study)
     held = load_cached(path, _read, "features file")
     if held is not None:
         return path, held
     frames = frames_of(study, ds)
     trunk, _ = networks()
-    trunk.to(device())
+    dev = device()
+    trunk.to(dev)
     t0 = time.perf_counter()
-    batches = tqdm(rgb_batches(frames, BATCH, "the RGB the ImageNet features are computed from"),
+    rgb = rgb if rgb is not None else FrameRgb(study.perception.loader_workers, hold_bytes=0)
+    batches = tqdm(rgb.batches(frames, BATCH, dev, "the RGB the ImageNet features are computed from"),
                    total=-(-len(frames) // BATCH), desc="ImageNet features", unit="batch", disable=not progress,
                    leave=False)
-    trunk_maps = np.concatenate([trunk_features(trunk, rgb) for rgb in batches])
+    trunk_maps = np.concatenate([trunk_features(trunk, images.numpy()) for images in batches])
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, frames=np.array([f.key for f in frames]), trunk=trunk_maps)
@@ -150,10 +155,12 @@ def _load_or_compute(study: Study, ds=None, progress: bool = True) -> tuple[Path
     # and the head's kernels round differently in the last bit on it)
 
 
-def ensure(study: Study, ds=None, progress: bool = True) -> Path:
+def ensure(study: Study, ds=None, progress: bool = True, rgb: Optional[FrameRgb] = None) -> Path:
     """The features file of the study, computed when absent (or unreadable: removed and computed again). Every
-    selected frame needs its RGB: a missing colour file is one `DataFileError` naming it."""
-    return _load_or_compute(study, ds, progress)[0]
+    selected frame needs its RGB: a missing colour file is one `DataFileError` naming it. `rgb`: where the frames'
+    RGB comes from (the perception stage's `FrameRgb`, which has read them already); default the `image_loader` of
+    `perception.loader_workers` processes."""
+    return _load_or_compute(study, ds, progress, rgb)[0]
 
 
 _LOADED: dict[str, dict] = {}

@@ -31,6 +31,7 @@ from monolib.data.selection import select_frames
 from monolib.data.stage import dataset_key as data_key, ensure_dataset, open_dataset
 from monolib.params import Study, StudyError, key_of, resolve_path
 from monolib.perception import depth as dep, manifests, segmentation as seg, weights
+from monolib.perception.images import FrameRgb
 from monolib.perception.depth import depth_errors, summarise
 from monolib.perception.segmentation import confusion, scores
 from monolib.progress import tqdm
@@ -279,54 +280,26 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
     return model, history, "trained"
 
 
-class FrameImages:
-    """The frames' RGB as a map-style dataset of a `torch.utils.data.DataLoader`: item i is frame i's uint8
-    (H, W, 3) image, read where the loader runs it (a worker process, or the main one). It holds the dataset and
-    each frame's (setting, scene, index), and reads each image through a new `Frame`, so no image stays in memory."""
-
-    def __init__(self, frames):
-        self.frames = [(f.dataset, f.setting, f.scene, f.index) for f in frames]
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def __getitem__(self, i: int) -> np.ndarray:
-        dataset, setting, scene, index = self.frames[i]
-        frame = dataset.frame(setting, scene, index)
-        rgb = frame.rgb
-        if rgb is None:
-            raise io.DataFileError(f"{frame.files['color']}: file not found (the RGB a prediction is made from)")
-        return rgb
-
-
-def image_loader(frames, spec, dev):
-    """A DataLoader of the frames' RGB (`FrameImages`) in their order: batches of `spec.predict_batch` (N, H, W, 3)
-    uint8 tensors, read by `spec.loader_workers` worker processes (0: in the main process; never more than the
-    batches), in pinned memory when `dev` is CUDA. `spec`: the study's `PerceptionSpec`."""
-    from torch.utils.data import DataLoader
-
-    batches = -(-len(frames) // spec.predict_batch)
-    return DataLoader(FrameImages(frames), batch_size=spec.predict_batch, shuffle=False,
-                      num_workers=min(spec.loader_workers, batches), pin_memory=dev.type == "cuda",
-                      persistent_workers=False)
-
-
 def predict_frames(model, task: str, frames, spec, write: Callable, progress: bool = False,
-                   desc: str = "predict") -> float:
-    """Predict `frames` batch by batch through `image_loader` (under `torch.inference_mode`, float16 autocast on CUDA
-    with `spec.amp`) and hand each prediction to `write(frame, prediction)` as soon as its batch is done; returns
-    the seconds of inference (reading not counted). `task`: 'segmentation' or 'depth'."""
+                   desc: str = "predict", rgb: Optional[FrameRgb] = None) -> float:
+    """Predict `frames` batch by batch (under `torch.inference_mode`, float16 autocast on CUDA with `spec.amp`) and
+    hand each prediction to `write(frame, prediction)` as soon as its batch is done; returns the seconds of inference
+    (reading not counted). `task`: 'segmentation' or 'depth'. `rgb`: where the frames' RGB comes from (the stage's
+    `FrameRgb`, shared by its passes); default a `FrameRgb` of this call, reading through the `image_loader` of
+    `spec.loader_workers` processes."""
     import torch
 
     predict = seg.predict if task == "segmentation" else dep.predict
     if task == "segmentation":
         model = seg.for_inference(model)
     dev = next(model.parameters()).device
+    rgb = rgb if rgb is not None else FrameRgb(spec.loader_workers, hold_bytes=0)
     seconds, done = 0.0, 0
     with torch.inference_mode():
-        for rgb in tqdm(image_loader(frames, spec, dev), desc=desc, disable=not progress, leave=False):
+        for images in tqdm(rgb.batches(frames, spec.predict_batch, dev), total=-(-len(frames) // spec.predict_batch),
+                           desc=desc, disable=not progress, leave=False):
             t0 = time.perf_counter()
-            out = predict(model, rgb, spec.predict_batch, amp=spec.amp)
+            out = predict(model, images, spec.predict_batch, amp=spec.amp)
             seconds += time.perf_counter() - t0
             for f, p in zip(frames[done : done + len(out)], out):
                 write(f, p)
@@ -334,7 +307,8 @@ def predict_frames(model, task: str, frames, spec, write: Callable, progress: bo
     return seconds
 
 
-def _predict_all(study: Study, name: str, model, frames, progress: bool) -> tuple[int, int, float]:
+def _predict_all(study: Study, name: str, model, frames, progress: bool,
+                 rgb: Optional[FrameRgb] = None) -> tuple[int, int, float]:
     """Predict the frames whose prediction file is missing, each written (atomically) as its batch is done, so a
     stopped run loses nothing predicted and the next one writes only the rest.
 
@@ -356,7 +330,7 @@ def _predict_all(study: Study, name: str, model, frames, progress: bool) -> tupl
     if not todo:
         return 0, 0, 0.0
     return len(missing), len(todo), predict_frames(model, task, todo, study.perception, write, progress,
-                                                   f"predict {name}")
+                                                   f"predict {name}", rgb)
 
 
 def _evaluate(study: Study, name: str, test) -> dict:
@@ -405,10 +379,12 @@ def check_weights(study: Study) -> None:
                 raise StudyError(str(exc)) from None
 
 
-def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, dataset=None) -> pd.DataFrame:
+def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, dataset=None,
+        rgb: Optional[FrameRgb] = None) -> pd.DataFrame:
     """Train/evaluate/predict each perception model unless cached; returns the metrics table.
 
-    `only`: model names to run (default all). The table's ``attrs["status"]`` maps each model to
+    `only`: model names to run (default all). `rgb`: where the models read the frames' RGB (a caller's `FrameRgb`,
+    shared with its other passes); default one for this call, so that the models read each frame once. The table's ``attrs["status"]`` maps each model to
     'cached' (nothing done), or 'done' (something was trained, evaluated or predicted).
     """
     check_weights(study)
@@ -416,6 +392,7 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
     status: dict[str, str] = {}
     ds = dataset
     sels: dict[int, object] = {}
+    rgb = rgb if rgb is not None else FrameRgb(study.perception.loader_workers)
     with _threads(study.perception.threads):
         for name in names:
             spec, task = _spec(study, name)
@@ -433,7 +410,7 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
                 status[name] = "cached"
                 continue
             model, history, how = _train_or_load(study, name, sel, progress)
-            n_pred, n_run, secs = _predict_all(study, name, model, frames, progress)
+            n_pred, n_run, secs = _predict_all(study, name, model, frames, progress, rgb)
             metrics = _evaluate(study, name, sel.test)
             if metrics.get("nonfinite_share", 0.0) > MAX_NONFINITE_SHARE:  # before anything marks it done
                 raise NonFiniteDepth(

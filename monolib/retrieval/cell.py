@@ -182,6 +182,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "cell.json").unlink(missing_ok=True)  # (an `out_dir` of the caller's, or `force`): written anew
     torch.set_num_threads(study.threads)
+    devices.keep_freed_memory()
     timings: dict[str, float] = {}
     history = None
 

@@ -12,11 +12,13 @@ from concurrent.futures import as_completed
 from pathlib import Path
 
 from monolib import locks, methods, paths
+from monolib.device import keep_freed_memory
 from monolib.data import stage as dataset
 from monolib.graphs import fidelity, stage as scenegraphs
 from monolib.io import write_json
 from monolib.params import Study, StudyError, load_study
 from monolib.perception import features, stage as perception
+from monolib.perception.images import FrameRgb
 from monolib.progress import tqdm
 from monolib.report import graph_sizes, readme, viz
 from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete, refresh_metrics,
@@ -281,6 +283,7 @@ def prepare(study: Study | str, scenarios: list[str] | None = None, cells: bool 
     Returns the study. Every notebook calls it first, so that it runs on a fresh clone with its defaults."""
     if not isinstance(study, Study):
         study = load_study(study)
+    keep_freed_memory()
     with locks.study_lock(study.dir, study.data_dir):  # the study's lock: held already inside a run's own cells
         stages(study, None if cells else scenarios, progress=progress)  # the grid needs every scenario
         if cells:
@@ -326,10 +329,11 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
     times["dataset_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
+    rgb = FrameRgb(study.perception.loader_workers)  # the frames' RGB, read once for the networks and the features
     if models:
         say("[2/5] perception")
         # every model for the run's figures (its table lists them all), else those of the graphs to build
-        perception.run(study, progress=progress, only=None if figures else models, dataset=ds)
+        perception.run(study, progress=progress, only=None if figures else models, dataset=ds, rgb=rgb)
         if figures and not study.extends:  # the paper's Figures 3 and 4 and the training curves, into figures/
             perception.draw_figures(study, dataset=ds)
     else:
@@ -337,7 +341,7 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
     imagenet = [m for m in study.methods if m in methods.IMAGENET]
     if imagenet and IMAGE_SCENARIO in names:
         say(f"[2/5] perception: ImageNet features of the frames ({', '.join(imagenet)})")
-        features.ensure(study, ds, progress=progress)
+        features.ensure(study, ds, progress=progress, rgb=rgb)
     times["perception_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
