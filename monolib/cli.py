@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
                    "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
     args = parser.parse_args(argv)
-    from monolib.device import keep_freed_memory
+    from monolib.device import keep_freed_memory  # deferred: torch
 
     keep_freed_memory()  # (the allocator: freed tensors reused, not mapped again by the kernel each step)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
