@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-imagenet clean-runs
+.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet clean-runs
 
 install: $(STAMP)
 
@@ -77,6 +77,11 @@ bench-render: install
 # query image end to end, recall@1, side by side
 bench-localizers: install
 	$(VENV)/bin/monolib bench --localizers --study quick --out figures/localizers.json
+
+# one imagenet_triplet cell of the quick study (run `make study` first) with glibc's malloc as it is and with the
+# project's (monolib.device.keep_freed_memory), in a new process each: seconds, system CPU, page faults, same files
+bench-allocator: install
+	$(VENV)/bin/monolib bench --allocator --study quick --out figures/allocator.json
 
 # the measurements behind the ImageNet methods' choices (VLAD whitening; the fine-tuning's output and learning rate)
 bench-imagenet: install

@@ -70,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--imagenet-choices", action="store_true", help="instead: imagenet_vlad of --study with and "
                    "without PCA whitening, imagenet_triplet's output and learning rate; recall@1 on both protocols "
                    "(about 10 minutes)")
+    p.add_argument("--allocator", action="store_true", help="instead: one imagenet_triplet cell of the finished "
+                   "--study with glibc's malloc as it is and with monolib's (MONOLIB_ALLOCATOR), side by side (minutes)")
     p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
                    "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
     args = parser.parse_args(argv)
@@ -147,6 +149,10 @@ def main(argv: list[str] | None = None) -> int:
                 from monolib import bench  # deferred: torch
 
                 bench.localizer_costs(args.study, out=args.out)
+            elif args.allocator:
+                from monolib import bench  # deferred: torch
+
+                bench.allocator_side_by_side(args.study, out=args.out)
             elif args.grid:
                 from monolib.study import scaling  # deferred: torch
 

@@ -60,15 +60,18 @@ def keep_freed_memory() -> bool:
     """Let this process keep the memory it frees for its next allocations, instead of returning it to the kernel.
 
     glibc's malloc serves every block above its mmap threshold (128 kB to 32 MB) with a fresh ``mmap`` and unmaps it
-    on ``free``; a tensor of a training step or a prediction batch is such a block, so every step the kernel
-    maps and zeroes the same megabytes again. On this project's 2-core machine that took more CPU than the
-    arithmetic: 330,000 page faults a second and 55% of the CPU in the kernel in `imagenet_triplet`'s cells, 28% in
-    DeepLabV3's predictions. With ``mmap`` off for blocks (``M_MMAP_MAX`` 0) and the heap never trimmed
-    (``M_TRIM_THRESHOLD`` 2 GiB), freed blocks go back to malloc's own lists and the next step reuses them: the
-    process keeps its peak memory, and computes the same numbers (PyTorch aligns every CPU tensor to 64 bytes
-    whatever malloc returns). Called by every entry point that computes (the CLI, a notebook's `prepare`, a cell);
-    returns whether it took effect (only with glibc: elsewhere the allocator is left as it is)."""
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    on ``free``; a tensor of a training step or a prediction batch is such a block, so every step the kernel maps
+    and zeroes the same megabytes again, which on this project's 2-core machine took more CPU than the arithmetic
+    in `imagenet_triplet`'s cells (`make bench-allocator`). With ``mmap`` off for blocks (``M_MMAP_MAX`` 0) and the
+    heap never trimmed (``M_TRIM_THRESHOLD`` 2 GiB), freed blocks go back to malloc's own lists and the next step
+    reuses them: the process keeps its peak memory, and computes the same numbers (PyTorch aligns every CPU tensor
+    to 64 bytes whatever malloc returns). Called by every entry point that computes (the CLI, a notebook's
+    `prepare`, a cell). ``MONOLIB_ALLOCATOR=default`` leaves malloc as it is (``keep``, the default, does this).
+    Returns whether it took effect (only with glibc: elsewhere the allocator is left as it is)."""
+    choice = os.environ.get("MONOLIB_ALLOCATOR", "keep").lower()
+    if choice not in ("keep", "default"):
+        raise ValueError(f"MONOLIB_ALLOCATOR: expected keep or default, got {choice!r}")
+    if choice == "default" or platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return False
     try:
         libc = ctypes.CDLL(None)

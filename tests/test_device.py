@@ -99,8 +99,7 @@ import hashlib, resource, sys
 import torch
 from monolib.device import keep_freed_memory
 
-if sys.argv[1] == "keep":
-    assert keep_freed_memory()
+assert keep_freed_memory() == (sys.argv[1] == "keep")
 torch.set_num_threads(1)
 torch.manual_seed(0)
 net = torch.nn.Sequential(torch.nn.Conv2d(3, 32, 3, padding=1), torch.nn.BatchNorm2d(32), torch.nn.ReLU(),
@@ -128,12 +127,26 @@ print(faults, digest)
 def test_freed_tensors_are_reused_and_compute_the_same():
     """`keep_freed_memory`: three training steps of a small conv net fault in a tenth of the pages or fewer once two
     steps have run (without it, every step maps its activations again), and end with the same weights, bit for
-    bit."""
+    bit. ``MONOLIB_ALLOCATOR=default`` leaves malloc as it is."""
+    import os
     import subprocess
     import sys
 
-    out = {mode: subprocess.run([sys.executable, "-c", STEPS, mode], capture_output=True, text=True, check=True)
-           .stdout.split() for mode in ("default", "keep")}
+    out = {mode: subprocess.run([sys.executable, "-c", STEPS, mode], capture_output=True, text=True, check=True,
+                                env={**os.environ, "MONOLIB_ALLOCATOR": mode}).stdout.split()
+           for mode in ("default", "keep")}
     faults = {mode: int(v[0]) for mode, v in out.items()}
     assert faults["default"] > 10 * faults["keep"], faults
     assert out["default"][1] == out["keep"][1]
+
+
+def test_an_unknown_allocator_choice_is_one_clear_error(monkeypatch):
+    from monolib import device
+
+    monkeypatch.setenv("MONOLIB_ALLOCATOR", "jemalloc")
+    device.keep_freed_memory.cache_clear()
+    try:
+        with pytest.raises(ValueError, match="MONOLIB_ALLOCATOR: expected keep or default, got 'jemalloc'"):
+            device.keep_freed_memory()
+    finally:
+        device.keep_freed_memory.cache_clear()
