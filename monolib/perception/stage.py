@@ -384,8 +384,9 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
     """Train/evaluate/predict each perception model unless cached; returns the metrics table.
 
     `only`: model names to run (default all). `rgb`: where the models read the frames' RGB (a caller's `FrameRgb`,
-    shared with its other passes); default one for this call, so that the models read each frame once. The table's ``attrs["status"]`` maps each model to
-    'cached' (nothing done), or 'done' (something was trained, evaluated or predicted).
+    shared with its other passes); default one for this call, so that the models read each frame once. The table's
+    ``attrs["status"]`` maps each model to 'cached' (nothing done), or 'done' (something was trained, evaluated or
+    predicted).
     """
     check_weights(study)
     names = only or study.model_names()
