@@ -33,7 +33,8 @@ from monolib.graphs import build as graph, stage as scenegraphs
 from monolib.graphs.build import scene_nodes
 from monolib.io import DataFileError, atomic_path, read_json, save_torch, write_json, write_text
 from monolib.params import PAPER, Study, load_study
-from monolib.perception import depth as depth_mod, features, segmentation as seg_mod, stage as perception
+from monolib.perception import depth as depth_mod, segmentation as seg_mod, stage as perception
+from monolib.perception.images import FrameRgb
 from monolib.report.results import cell_metrics
 from monolib.retrieval import baselines, gcn, pretrained
 
@@ -109,10 +110,11 @@ def image_describer(method: str, state: dict | None):
 
 
 def describe_frames(describe, frames, batch: int = 32) -> np.ndarray:
-    """(N, D) float32: `describe` over the frames' RGB, in batches (`features.rgb_batches`)."""
+    """(N, D) float32: `describe` over the frames' RGB, in batches read in this process (`FrameRgb`)."""
+    rgb = FrameRgb(0, hold_bytes=0).batches(frames, batch, torch.device("cpu"),
+                                            "the RGB a database frame is described from")
     try:
-        return np.concatenate([describe(rgb) for rgb in
-                               features.rgb_batches(frames, batch, "the RGB a database frame is described from")])
+        return np.concatenate([describe(images.numpy()) for images in rgb])
     except DataFileError as exc:
         raise LocalizeError(str(exc)) from None
 

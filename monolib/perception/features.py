@@ -116,18 +116,6 @@ def _read(path: Path) -> dict:
     return out
 
 
-def rgb_batches(frames, batch: int, purpose: str):
-    """(N, H, W, 3) uint8 stacks of the frames' RGB, `batch` frames at a time; a missing colour file is one
-    `DataFileError` naming it and `purpose` (what the RGB is read for)."""
-    for s in range(0, len(frames), batch):
-        rgb = []
-        for f in frames[s : s + batch]:
-            if f.rgb is None:
-                raise DataFileError(f"{f.files['color']}: file not found ({purpose})")
-            rgb.append(f.rgb)
-        yield np.stack(rgb)
-
-
 def _load_or_compute(study: Study, ds=None, progress: bool = True,
                      rgb: Optional[FrameRgb] = None) -> tuple[Path, dict]:
     """(path, content) of the study's features file, read once: computed and written first when absent (or
