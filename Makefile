@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet clean-runs
+.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
 
 install: $(STAMP)
 
@@ -82,6 +82,11 @@ bench-localizers: install
 # project's (monolib.device.keep_freed_memory), in a new process each: seconds, system CPU, page faults, same files
 bench-allocator: install
 	$(VENV)/bin/monolib bench --allocator --study quick --out figures/allocator.json
+
+# which epoch's model the trained encoders keep: the selection rules compared on the training split of the quick
+# study (run `make study` first): figures/selection.md
+bench-selection: install
+	$(VENV)/bin/monolib bench --selection --study quick
 
 # the measurements behind the ImageNet methods' choices (VLAD whitening; the fine-tuning's output and learning rate)
 bench-imagenet: install

@@ -72,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
                    "(about 10 minutes)")
     p.add_argument("--allocator", action="store_true", help="instead: one imagenet_triplet cell of the finished "
                    "--study with glibc's malloc as it is and with monolib's (MONOLIB_ALLOCATOR), side by side (minutes)")
+    p.add_argument("--selection", action="store_true", help="instead: the model-selection rules of the trained "
+                   "encoders compared on the training split of --study (figures/selection.md; minutes)")
     p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
                    "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
     args = parser.parse_args(argv)
@@ -153,6 +155,12 @@ def main(argv: list[str] | None = None) -> int:
                 from monolib import bench  # deferred: torch
 
                 bench.allocator_side_by_side(args.study, out=args.out)
+            elif args.selection:
+                from monolib import paths
+                from monolib.retrieval import model_selection  # deferred: torch
+
+                study = load_study(args.study)
+                print(model_selection.write(study, paths.figures_dir(study.name))["md"])
             elif args.grid:
                 from monolib.study import scaling  # deferred: torch
 

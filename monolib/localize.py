@@ -11,8 +11,10 @@ Hypersim canonical camera (60 degree horizontal field of view).
 
 Every bad input is one `LocalizeError` naming the file or option and what was expected (the command prints it as one
 ``error:`` line and exits with status 2): no database folder or a database file missing, `index` on a study without
-a finished cell, an unknown `--method`, a database whose scenario or method is no longer in its study file, and a
-`--k` outside 1 .. the number of settings in the database (see `localize`).
+a finished cell, an unknown `--method`, a database whose scenario or method is no longer in its study file, a
+graph database of HDR node colours (`graphs.colour: hdr`: a photo has no HDR radiance, so `index` refuses such a
+cell and `localize` such a database, naming the key), and a `--k` outside 1 .. the number of settings in the
+database (see `localize`).
 """
 from __future__ import annotations
 
@@ -72,14 +74,15 @@ def _image_method(study: Study, method: str | None) -> bool:
 
 def pick_cell(study: Study, method: str | None = None) -> dict:
     """The finished graph-method cell (of `method`, or of any) with the best recall@1 (``paper`` protocol) among
-    scenarios with predicted depth and predicted semantics (what a new image has); for an image method, its best
-    cell (with its ``model.pt`` where the method learns something)."""
+    scenarios with predicted depth, predicted semantics and tonemapped node colours (what a new image has: a photo
+    holds no HDR radiance, so an encoder trained on `graphs.colour: hdr` cannot read its graph; `HDR_REFUSED`);
+    for an image method, its best cell (with its ``model.pt`` where the method learns something)."""
     image = _image_method(study, method)
     if method is not None and not image and method not in study.graph_methods():
         known = study.graph_methods() + [m for m in study.methods if methods.kind(m, study) == "image"]
         raise LocalizeError(f"{study.path}: --method {method}: not a method of study {study.name}; expected one "
                             f"of {', '.join(known)}")
-    best = None
+    best, hdr_only = None, False
     wanted = [method] if method else study.graph_methods()
     files = [f for m in wanted for f in sorted((paths.study_dir(study.name) / "cells" / m).glob("*/cell.json"))]
     for f in files:
@@ -88,10 +91,17 @@ def pick_cell(study: Study, method: str | None = None) -> dict:
             sc = study.scenarios.get(c["scenario"])
             if sc is None or sc.depth == "gt" or sc.semantic == "gt" or sc.depth_scale != 1.0:
                 continue
+            if study.colour(c["scenario"]) != "tonemapped":
+                hdr_only = True
+                continue
         if (not image or method in STATEFUL) and not (f.parent / "model.pt").is_file():
             continue
         if best is None or cell_metrics(c)[PAPER]["recall@1"] > cell_metrics(best[0])[PAPER]["recall@1"]:
             best = (c, f.parent)
+    if best is None and hdr_only:
+        raise LocalizeError(f"{study.path}: {HDR_REFUSED} Index an image method (--method), or a study whose "
+                            f"scenario with predicted inputs has `colour: tonemapped` (the ablations study's "
+                            f"s3_tonemapped).")
     if best is None:
         what = (f"{method} cell" + (" with a saved model.pt" if method in STATEFUL else "") if image
                 else f"{method or 'graph-method'} cell with predicted depth and semantics and a saved model.pt")
@@ -100,6 +110,8 @@ def pick_cell(study: Study, method: str | None = None) -> dict:
     return {**best[0], "folder": str(best[1])}
 
 
+HDR_REFUSED = ("graphs.colour: hdr: the encoders of this study's graph cells read node colours of HDR radiance "
+               "(color.hdf5), which a photo does not have, so no graph database is built from them.")
 # the image methods whose cell learns what their descriptor needs (a vocabulary, weights): its model.pt
 STATEFUL = ("orb_bow", "image_triplet", "imagenet_vlad", "imagenet_triplet")
 
@@ -170,6 +182,7 @@ def write_database(out: str | Path, study: Study, cell: dict, state: dict | torc
         "width": study.dataset.width, "height": study.dataset.height, "frames": len(frames),
         # the query graphs are built in the database's camera (an image method builds none)
         "projection": None if image else study.projection(cell["scenario"]),
+        "colour": None if image else study.colour(cell["scenario"]),
     })
     return out
 
@@ -232,6 +245,12 @@ class Localizer:
         if meta["method"] not in study.graph_methods():
             raise LocalizeError(f"{db / 'meta.json'}: method {meta['method']!r} is not a graph method of the study file "
                                 f"{study.path} (its graph methods: {', '.join(study.graph_methods())}); {rebuild}")
+        if study.colour(meta["scenario"]) != meta.get("colour", "tonemapped"):
+            raise LocalizeError(f"{db / 'meta.json'}: node colours {meta.get('colour', 'tonemapped')!r}, but scenario "
+                                f"{meta['scenario']!r} of {study.path} now has graphs.colour "
+                                f"{study.colour(meta['scenario'])!r}; {rebuild}")
+        if meta.get("colour", "tonemapped") != "tonemapped":
+            raise LocalizeError(f"{db / 'meta.json'}: {HDR_REFUSED}")
         sc = study.scenarios[meta["scenario"]]
         now = {"semantic": perception.model_tag(study, sc.semantic), "depth": perception.model_tag(study, sc.depth)}
         if now != meta["models"]:

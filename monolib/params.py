@@ -94,6 +94,7 @@ class PerceptionSpec:
 
 
 PROJECTIONS = ("monograph", "exact")  # the back-projections of the graph stage (`monolib.graphs.build`)
+COLOURS = ("hdr", "tonemapped")       # what a node's median colour is taken over (`monolib.graphs.stage`)
 
 
 @dataclass
@@ -103,6 +104,10 @@ class GraphsSpec:
     `depth_meters` as z: the space in which the paper's thresholds and the published graphs' lengths were measured),
     or ``exact``, each scene's own `M_cam_from_uv` with planar depth (true metres)."""
     projection: str = "monograph"
+    # `colour`: what each node's median R, G, B is taken over. ``hdr``: Hypersim's linear `color.hdf5` radiance, as
+    # the original code's graphs (and the published ones) hold it; ``tonemapped``: the frame's tonemapped uint8 RGB
+    # (brightness divided out, gamma 1/2.2), which is all a photo gives. The networks see the tonemapped RGB either way.
+    colour: str = "hdr"
 
 
 @dataclass
@@ -112,6 +117,7 @@ class Scenario:
     label: str = ""
     depth_scale: float = 1.0                 # multiply the depth source (controlled depth-scale experiments)
     projection: Optional[str] = None         # monograph | exact: this scenario's back-projection (default: graphs.projection)
+    colour: Optional[str] = None             # hdr | tonemapped: this scenario's node colours (default: graphs.colour)
     thresholds: Optional[list[float]] = None # run this scenario at these thresholds only (default: the study's)
     in_tables: bool = True                   # shown in Tables 1-2 (False: a controlled experiment with its own figure)
 
@@ -126,8 +132,13 @@ class GCNSpec:
     lr: float = 1e-3
     weight_decay: float = 0.0
     margin: float = 1.0
-    patience: int = 10
+    patience: int = 10                       # stop after this many epochs without a better validation score
     val_settings: int = 4                    # training settings held out for early stopping
+    # model selection (`monolib.retrieval.gcn.EarlyStopping`), for every method trained with the triplet loss:
+    select: str = "val_recall"               # which epoch's model is kept: val_recall (leave-one-out recall@1 on the
+                                             # validation settings, ties by validation loss) | val_map (its mean
+                                             # average precision) | val_loss | last (a fixed schedule: every epoch)
+    min_epochs: int = 1                      # no model is kept, and no stop made, before this epoch
     # encoder choices (the defaults are the paper's; `variants:` in a study file change them per method)
     conv: str = "gcn"                        # gcn | gine, gatv2, transformer (read the edge attributes)
     edges: str = "both"                      # both directions, or "upper" (i < j only, as the published code)
@@ -158,6 +169,7 @@ class Variant:
                                              # ablation_<that method>.md sets it against that method, both protocols
 
 
+SELECT = ("val_recall", "val_map", "val_loss", "last")  # the model-selection rules of `GCNSpec.select`
 TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
 PAPER, SIBLINGS = "paper", "siblings"  # the test protocols: the paper's, and pairs of sibling settings
 PROTOCOLS = (PAPER, SIBLINGS)          # in table order
@@ -231,6 +243,10 @@ class Study:
     def projection(self, scenario: str) -> str:
         """The back-projection of a scenario's graphs: its own `projection`, else the study's `graphs.projection`."""
         return self.scenarios[scenario].projection or self.graphs.projection
+
+    def colour(self, scenario: str) -> str:
+        """What a scenario's node colours are medians of: its own `colour`, else the study's `graphs.colour`."""
+        return self.scenarios[scenario].colour or self.graphs.colour
 
     def method_kind(self, method: str) -> str:
         if method in self.variants:
@@ -445,6 +461,8 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights, study.path)}")
     if study.graphs.projection not in PROJECTIONS:
         bad("graphs.projection", f"expected one of {', '.join(PROJECTIONS)}, got {study.graphs.projection!r}")
+    if study.graphs.colour not in COLOURS:
+        bad("graphs.colour", f"expected one of {', '.join(COLOURS)}, got {study.graphs.colour!r}")
     for sname, sc in study.scenarios.items():
         if sc.depth != "gt" and sc.depth not in [d.name for d in study.perception.depth]:
             bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {[d.name for d in study.perception.depth]}, got {sc.depth!r}")
@@ -460,6 +478,12 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"scenarios.{sname}.projection" if sc.projection else "graphs.projection",
                 "published graphs hold the original code's lengths (projection: monograph); they cannot be "
                 "back-projected again")
+        if sc.colour is not None and sc.colour not in COLOURS:
+            bad(f"scenarios.{sname}.colour", f"expected one of {', '.join(COLOURS)}, got {sc.colour!r}")
+        if study.graphs_root and study.colour(sname) != "hdr":
+            bad(f"scenarios.{sname}.colour" if sc.colour else "graphs.colour",
+                "published graphs hold medians of the HDR color.hdf5 (colour: hdr); their frames are not there to "
+                "take another median")
 
     for m in study.methods:
         if m not in METHODS:
@@ -467,7 +491,7 @@ def _check(study: Study, check_files: bool = True) -> None:
     choices = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("both", "upper"),
                "label": ("raw", "embedding", "onehot"), "colour": ("raw", "standardised"),
                "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax", "attention"),
-               "mining": ("random", "batch_hard", "family", "batch_hard_family")}
+               "mining": ("random", "batch_hard", "family", "batch_hard_family"), "select": SELECT}
     specs = {"gcn": study.gcn}
     for vname, v in study.variants.items():
         if vname in METHODS:
@@ -488,6 +512,8 @@ def _check(study: Study, check_files: bool = True) -> None:
         for key in ("batch_size", "patience"):
             if getattr(g, key) < 1:
                 bad(f"{where}.{key}", f"expected at least 1, got {getattr(g, key)}")
+        if not 1 <= g.min_epochs <= g.epochs:
+            bad(f"{where}.min_epochs", f"expected 1 .. epochs ({g.epochs}), got {g.min_epochs}")
         if not 0.0 <= g.family_share <= 1.0:
             bad(f"{where}.family_share", f"expected a share in [0, 1], got {g.family_share}")
         if g.conv == "transformer" and g.hidden % TRANSFORMER_HEADS:

@@ -27,6 +27,10 @@ CAMERA_CSV = "metadata_camera_parameters.csv"
 FOV_X = np.pi / 3
 
 
+class HdrMissing(DataFileError):
+    """A frame's `color.hdf5` is missing where its HDR radiance is needed; the message names the file."""
+
+
 # ---- camera model ------------------------------------------------------------------------------------------
 
 @functools.lru_cache(maxsize=16)
@@ -191,6 +195,15 @@ class Frame:
         if self.files["render_entity_id"].exists():
             valid = read_h5(self.files["render_entity_id"]) != -1
         return tonemap(color, valid)
+
+    @functools.cached_property
+    def hdr(self) -> np.ndarray:
+        """(H, W, 3) float32: `color.hdf5` as stored, Hypersim's linear HDR radiance (what the original code's node
+        colours are medians of). A missing file is `HdrMissing`: a graph of HDR colours cannot be built without it."""
+        if not self.files["color"].exists():
+            raise HdrMissing(f"{self.files['color']}: file not found; node colours of `graphs.colour: hdr` are medians "
+                             f"of this file (a dataset without HDR colour needs `graphs.colour: tonemapped`)")
+        return self._read("color", np.float32, 3)
 
     @functools.cached_property
     def semantic(self) -> Optional[np.ndarray]:

@@ -29,9 +29,9 @@ Geometry and light, like with like (the doc's sections "Geometry" and "Light"):
   figures in the study's own projection when it is not ``monograph``;
 - wall and floor colour from the HDR `color.hdf5` (linear radiance): each node's median (the pixels of the label with
   valid depth, as the node), then the colour statistics above over every setting of those frames (``HDR``), beside
-  the same of the graphs' node colours of the same frames (``node``: here the tonemapped uint8 colours, which divide
-  out each frame's brightness and scale log colour by 1/2.2) and beside real Hypersim's (whose published node
-  colours are HDR medians).
+  the same of the graphs' node colours of the same frames (``node``: in the study's `graphs.colour`, the HDR medians
+  themselves or the tonemapped uint8 colours, which divide out each frame's brightness and scale log colour by
+  1/2.2) and beside real Hypersim's (whose published node colours are HDR medians).
 
 The real Hypersim numbers cannot be computed here (the published files are not available); they are transcribed
 from the doc into `monolib/resources/fidelity_reference.csv`. `write(study)` puts `fidelity.csv` (long format: statistic,
@@ -435,10 +435,19 @@ def acceptance(train: dict[str, float]) -> list[tuple[str, bool]]:
     return out  # NaN compares False: not measurable = not passed
 
 
-def markdown(study_name: str, sources: dict[str, dict[str, float]]) -> str:
+COLOUR_SPACES = {  # what the graphs' node colours are, by `graphs.colour`, in the words of fidelity.md
+    "hdr": ("medians of the HDR color.hdf5, like real Hypersim's: the same space, so the rows compare like with like"),
+    "tonemapped": ("medians of Hypersim's tonemap of each frame, which divides out the frame's brightness and scales "
+                   "log colour by 1/2.2: not comparable with real Hypersim's HDR medians; the light table's HDR rows "
+                   "are the like-with-like comparison"),
+}
+
+
+def markdown(study_name: str, sources: dict[str, dict[str, float]], colour: str = "hdr") -> str:
     """fidelity.md: the scene-graph table, the geometry table (pixel depth, node pairs in the original code's camera
     and in the study's own when the statistics hold another), the light table (HDR against the graphs' node
-    colours), label frequencies and the acceptance targets, each source beside real Hypersim."""
+    colours), label frequencies and the acceptance targets, each source beside real Hypersim. `colour`: the space of
+    the ground-truth graphs' node colours (`graphs.colour`), named beside every colour row."""
     header = ["statistic"] + [f"{src} ({_number(stats.get('settings', float('nan')), 0)} settings)"
                               for src, stats in sources.items()]
 
@@ -449,7 +458,7 @@ def markdown(study_name: str, sources: dict[str, dict[str, float]]) -> str:
 
     graph_rows = [("nodes per graph: mean / median / p10 / p90", lambda st: table_rows(st)[0]),
                   ("label-set Jaccard within / across settings", lambda st: table_rows(st)[1])]
-    graph_rows += [(f"{label} colour sd within / between settings (ratio), node colours",
+    graph_rows += [(f"{label} colour sd within / between settings (ratio), node colours ({colour})",
                     lambda st, lab=label: _colour_cell(st, lab)) for label, _ in COLOUR_LABELS]
     others = sorted({key[len("pairs per graph ("):-1] for stats in sources.values() for key in stats
                      if key.startswith("pairs per graph (")} - {MONOGRAPH})
@@ -457,7 +466,8 @@ def markdown(study_name: str, sources: dict[str, dict[str, float]]) -> str:
     light_rows = [(f"{label} colour sd within / between settings (ratio), {what}",
                    lambda st, lab=label, k=kind: _colour_cell(st, lab, k))
                   for label, _ in COLOUR_LABELS
-                  for what, kind in (("HDR color.hdf5 medians", "HDR "), ("the graphs' node colours", "node "))]
+                  for what, kind in (("HDR color.hdf5 medians", "HDR "), (f"the graphs' node colours ({colour})",
+                                                                            "node "))]
     frames = {src: _number(st.get("geometry and light, frames", float("nan")), 0) for src, st in sources.items()
               if src.startswith("this study")}
     lines = [f"# Data fidelity of `{study_name}`: ground-truth scene graphs against real Hypersim", "",
@@ -465,7 +475,7 @@ def markdown(study_name: str, sources: dict[str, dict[str, float]]) -> str:
              f"{PAIRS} seeded pairs; colour sd in log space over settings with >= {MIN_COLOUR_FRAMES} frames showing "
              "the label). Real Hypersim: transcribed from that doc (monolib/resources/fidelity_reference.csv). "
              "This table is computed as shared/tools/fidelity_reference.py computes it, on the ground-truth graphs "
-             "of each split (node colours: the graphs' own, here tonemapped; real Hypersim's: HDR medians).", ""]
+             f"of each split. Node colours: the graphs' own, {COLOUR_SPACES[colour]}.", ""]
     lines += table(graph_rows) + [""]
     lines += [f"**Geometry.** On every {DEPTH_EVERY}nd frame of each split (the training split with its validation "
               f"settings: the frames shared/tools/depth_light_reference.py reads; "
@@ -480,8 +490,7 @@ def markdown(study_name: str, sources: dict[str, dict[str, float]]) -> str:
     lines += table(geometry_rows(projections)) + [""]
     lines += ["**Light.** On the same frames: wall and floor colour distinctiveness from each node's median of the "
               "HDR color.hdf5 (linear radiance, as the published graphs hold it), beside the same statistics of the "
-              "graphs' node colours of those frames (here Hypersim's tonemap: it divides out each frame's brightness "
-              "and scales log colour by 1/2.2, so its spread is not comparable with HDR). Real Hypersim's node "
+              f"graphs' node colours of those frames (`{colour}`: {COLOUR_SPACES[colour]}). Real Hypersim's node "
               "colours are HDR medians: its rows are one measurement.", ""]
     lines += table(light_rows) + [""]
     for src, stats in sources.items():
@@ -513,5 +522,5 @@ def write(study: Study, measured: dict[str, dict[str, float]] | None = None) -> 
     writer.writerow(["statistic", "source", "value"])
     writer.writerows(long_rows(sources))
     write_text(out / "fidelity.csv", text.getvalue())
-    write_text(out / "fidelity.md", markdown(study.name, sources))
+    write_text(out / "fidelity.md", markdown(study.name, sources, study.colour(ground_truth_scenario(study))))
     return out / "fidelity.csv", out / "fidelity.md"

@@ -19,6 +19,7 @@ from torch_geometric.data import Data
 
 from monolib import versions
 from monolib.data import selection, stage as dataset
+from monolib.data.hypersim import HdrMissing
 from monolib.graphs import published
 from monolib.graphs.build import NODE_FEATURES, complete_graph, frame_nodes, pair_mask
 from monolib.io import DataFileError, load_cached, save_torch
@@ -42,8 +43,8 @@ def scenario_keys(study: Study, dataset_key: Optional[str] = None) -> dict[str, 
 def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
                  model_keys: Optional[dict[str, str]] = None) -> str:
     """Cache key of a scenario's graphs: the data stage's key, the frame selection, the two sources' model keys
-    (the perception stage's), the depth scale, the back-projection (`Study.projection`) and the version of the
-    graph code and libraries (`monolib.versions`). `dataset_key`, `model_keys`: the upstream stages' keys, when the
+    (the perception stage's), the depth scale, the back-projection (`Study.projection`), the node colours
+    (`Study.colour`) and the version of the graph code and libraries (`monolib.versions`). `dataset_key`, `model_keys`: the upstream stages' keys, when the
     caller holds them (`scenario_keys`); computed here otherwise."""
     sc = study.scenarios[scenario]
     data_key = dataset_key if dataset_key is not None else dataset.dataset_key(study)
@@ -56,7 +57,7 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
                    "frames": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
                               "frames": pr.frames},
                    "val": study.gcn.val_settings, "sources": sources, "depth_scale": sc.depth_scale,
-                   "projection": study.projection(scenario), "code": versions.code_version("graphs"),
+                   "projection": study.projection(scenario), "colour": study.colour(scenario), "code": versions.code_version("graphs"),
                    "libraries": versions.library_versions("graphs")})
 
 
@@ -115,8 +116,9 @@ def _frame_nodes(args) -> list[tuple]:
         try:
             depth = source("depth", sc.depth) * np.float32(sc.depth_scale)
             semantic = source("semantic", sc.semantic)
-            out.append(frame_nodes(f.rgb, depth, semantic, f.camera, study.projection(sc_name)))  # (x, pos, left out)
-        except perception.PredictionsMissing:  # a model's prediction: never an empty graph
+            colour = f.hdr if study.colour(sc_name) == "hdr" else f.rgb
+            out.append(frame_nodes(colour, depth, semantic, f.camera, study.projection(sc_name)))  # (x, pos, left out)
+        except (perception.PredictionsMissing, HdrMissing):  # a model's prediction, HDR colour: never an empty graph
             raise
         except (DataFileError, FileNotFoundError) as exc:  # a missing file of the download: an empty graph, counted
             out.append((np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32), 0, str(exc)))

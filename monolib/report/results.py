@@ -231,16 +231,16 @@ def labels_of(study) -> dict[str, str]:
 
 
 def scenario_info(study_name: str, study=None) -> pd.DataFrame:
-    """``scenario, depth, semantic, depth_scale, in_tables, label, projection`` of every scenario: from the study
-    when given, else from what the cells recorded (``depth``, ``semantic``, ``depth_scale`` (default 1),
-    ``in_tables`` (default True), ``projection`` (default ``exact``: the one camera of cells written before it was
-    recorded))."""
-    cols = ["scenario", "depth", "semantic", "depth_scale", "in_tables", "label", "projection"]
+    """``scenario, depth, semantic, depth_scale, in_tables, label, projection, colour`` of every scenario: from the
+    study when given, else from what the cells recorded (``depth``, ``semantic``, ``depth_scale`` (default 1),
+    ``in_tables`` (default True), ``projection`` (default ``exact``: the one camera of cells that do not record it),
+    ``colour`` (default ``tonemapped``, likewise))."""
+    cols = ["scenario", "depth", "semantic", "depth_scale", "in_tables", "label", "projection", "colour"]
     rows = []
     if study is not None:
         for name, sc in study.scenarios.items():
             rows.append((name, sc.depth, sc.semantic, float(sc.depth_scale), bool(sc.in_tables), sc.label or name,
-                         study.projection(name)))
+                         study.projection(name), study.colour(name)))
     else:
         seen = set()
         for f in cell_files(study_name):
@@ -251,7 +251,8 @@ def scenario_info(study_name: str, study=None) -> pd.DataFrame:
             seen.add(name)
             rows.append((name, str(cell.get("depth")), str(cell.get("semantic")),
                          float(cell.get("depth_scale") or 1.0), bool(cell.get("in_tables", True)),
-                         str(cell.get("scenario_label") or name), str(cell.get("projection") or "exact")))
+                         str(cell.get("scenario_label") or name), str(cell.get("projection") or "exact"),
+                         str(cell.get("colour") or "tonemapped")))
     out = pd.DataFrame(rows, columns=cols)
     return out.sort_values("scenario", key=lambda c: c.map(natural_key), kind="mergesort").reset_index(drop=True)
 

@@ -412,28 +412,40 @@ def depth_scale_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info:
     return out.sort_values(["depth", "semantic", "threshold", "depth_scale"], kind="mergesort").reset_index(drop=True)
 
 
-# ---- controlled comparisons: the two cameras of the graph stage ------------------------------------------------
+# ---- controlled comparisons: twins of a scenario in another camera or colour space --------------------------
 
-PROJECTION_COLUMNS = ["method", "scenario", "projection", "pair", "pair_projection", "threshold", "protocol", "metric",
-                      "k", "mean", "ci_lo", "ci_hi", "pair_mean", "pair_ci_lo", "pair_ci_hi", "diff", "diff_lo",
-                      "diff_hi", "significant", "n_seeds"]
+TWIN_AXES = ("projection", "colour")  # the scenario properties of the graph stage a twin differs in (one at a time)
 
 
-def projection_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame, k: int = 1,
-                     protocol: str = PAPER) -> pd.DataFrame:
-    """recall@k of the same method, sources and threshold in the two cameras of the graph stage: each scenario of
-    the tables (`info`: `monolib.report.results.scenario_info`) against every scenario with the same depth,
-    semantics and depth scale in another projection (its `pair`), at every threshold both were run, with the
-    paired difference pair - scenario (same seeds, settings and queries). Empty when the study has no such pair.
-    Columns `PROJECTION_COLUMNS`."""
+def twin_columns(axis: str) -> list[str]:
+    """The columns of `twin_table` along `axis`."""
+    return ["method", "scenario", axis, "pair", f"pair_{axis}", "threshold", "protocol", "metric", "k", "mean", "ci_lo",
+            "ci_hi", "pair_mean", "pair_ci_lo", "pair_ci_hi", "diff", "diff_lo", "diff_hi", "significant", "n_seeds"]
+
+
+PROJECTION_COLUMNS = twin_columns("projection")
+COLOUR_COLUMNS = twin_columns("colour")
+
+
+def twin_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame, axis: str = "projection",
+               k: int = 1, protocol: str = PAPER) -> pd.DataFrame:
+    """recall@k of the same method, sources and threshold with the graphs built two ways along `axis` (`TWIN_AXES`:
+    the camera of the back-projection, or the space of the node colours): each scenario of the tables (`info`:
+    `monolib.report.results.scenario_info`) against every scenario with the same depth, semantics, depth scale and
+    the same value on the other axes, but another on `axis` (its `pair`), at every threshold both were run, with
+    the paired difference pair - scenario (same seeds, settings and queries). Empty when the study has no such
+    pair. Columns `twin_columns(axis)`."""
     col = f"recall@{k}"
     qv, iv = only_protocol(with_protocol(qv), protocol), only_protocol(with_protocol(iv), protocol)
     r = iv[(iv["metric"] == "recall") & (iv["k"] == k)]
+    others = [a for a in TWIN_AXES if a != axis and a in info.columns]
     rows = []
     for _, base in info[info["in_tables"].astype(bool)].iterrows():
-        twins = info[(info["depth"] == base["depth"]) & (info["semantic"] == base["semantic"])
-                     & (info["depth_scale"] == base["depth_scale"]) & (info["projection"] != base["projection"])]
-        for _, twin in twins.iterrows():
+        same = (info["depth"] == base["depth"]) & (info["semantic"] == base["semantic"]) \
+            & (info["depth_scale"] == base["depth_scale"]) & (info[axis] != base[axis])
+        for other_axis in others:
+            same &= info[other_axis] == base[other_axis]
+        for _, twin in info[same].iterrows():
             sc, other = str(base["scenario"]), str(twin["scenario"])
             mine, theirs = r[r["scenario"] == sc], r[r["scenario"] == other]
             for (m, t), a in mine.groupby(["method", "threshold"], sort=False):
@@ -443,14 +455,26 @@ def projection_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: 
                 a, b = a.iloc[0], b.iloc[0]
                 d = paired_difference(rows_of(qv, m, other, t), rows_of(qv, m, sc, t), boot, [col])
                 d = d.iloc[0] if len(d) else None
-                rows.append((m, sc, str(base["projection"]), other, str(twin["projection"]), float(t), protocol,
+                rows.append((m, sc, str(base[axis]), other, str(twin[axis]), float(t), protocol,
                              "recall", k, float(a["mean"]), float(a["ci_lo"]), float(a["ci_hi"]), float(b["mean"]),
                              float(b["ci_lo"]), float(b["ci_hi"]),
                              *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
                                if d is not None else (np.nan, np.nan, np.nan, False)),
                              int(min(a["n_seeds"], b["n_seeds"]))))
-    out = pd.DataFrame(rows, columns=PROJECTION_COLUMNS)
+    out = pd.DataFrame(rows, columns=twin_columns(axis))
     return out.sort_values(["scenario", "method", "threshold"], kind="mergesort").reset_index(drop=True)
+
+
+def projection_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame, k: int = 1,
+                     protocol: str = PAPER) -> pd.DataFrame:
+    """`twin_table` along the camera of the back-projection (columns `PROJECTION_COLUMNS`)."""
+    return twin_table(qv, iv, boot, info, "projection", k, protocol)
+
+
+def colour_table(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, info: pd.DataFrame, k: int = 1,
+                 protocol: str = PAPER) -> pd.DataFrame:
+    """`twin_table` along the space of the node colours (columns `COLOUR_COLUMNS`)."""
+    return twin_table(qv, iv, boot, info, "colour", k, protocol)
 
 
 # ---- controlled comparisons: the two protocols side by side ----------------------------------------------------

@@ -402,23 +402,14 @@ def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str
     return "\n".join(lines) + "\n"
 
 
-def projection_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
-                        n_boot: int = N_BOOT) -> str:
-    """``projection.md`` of `monolib.report.statistics.projection_table`: per method, scenario and threshold, recall@k
-    in the scenario's camera and in its twin's, with the paired difference."""
+def twin_rows(table: pd.DataFrame, axis: str, scenario_labels: Optional[Mapping[str, str]] = None) -> list[str]:
+    """The per-scenario tables of `monolib.report.statistics.twin_table` along `axis`: per method and threshold,
+    recall@k of the scenario and of its twin, with the paired difference."""
     labels = dict(scenario_labels or {})
-    k = int(table["k"].iloc[0]) if len(table) else 1
-    lines = [f"**The two cameras, threshold by threshold** (recall@{k}, `paper` protocol). The same encoder, "
-             f"sources, seeds and threshold, the graphs built in the original Monograph code's camera (`monograph`: "
-             f"f 577.35 / 433.01 px at 1024x768 scaled to the frames, Euclidean depth as z, lengths 1.5-2 times the "
-             f"true ones) and in the exact one (`exact`: each scene's own camera, planar depth). Mean over seeds "
-             f"[95% bootstrap interval, {n_boot} resamples of settings, queries and seeds]; Δ: paired difference "
-             f"(twin - scenario) on the same seeds, settings and queries; {STAR}: its interval excludes 0. "
-             f"Threshold 0 has no edges, so both cameras give the same graphs to the encoder (a control).", ""]
-    for (sc, proj, pair, pair_proj), g in table.groupby(["scenario", "projection", "pair", "pair_projection"],
-                                                       sort=False):
-        lines += [f"*{sc}: {labels.get(sc, sc)}*, `{proj}` against {pair} in `{pair_proj}`:", "",
-                  f"| method | threshold (m) | {proj} | {pair_proj} | Δ {pair_proj} - {proj} |",
+    lines = []
+    for (sc, mine, pair, theirs), g in table.groupby(["scenario", axis, "pair", f"pair_{axis}"], sort=False):
+        lines += [f"*{sc}: {labels.get(sc, sc)}*, `{mine}` against {pair} in `{theirs}`:", "",
+                  f"| method | threshold (m) | {mine} | {theirs} | Δ {theirs} - {mine} |",
                   "|---|---|---:|---:|---:|"]
         prev = None
         for _, r in g.iterrows():
@@ -430,7 +421,37 @@ def projection_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[s
                          f"{r['pair_mean']:.1f} {fmt_ci(r['pair_ci_lo'], r['pair_ci_hi'])} | {diff} |")
             prev = r["method"]
         lines.append("")
-    return "\n".join(lines)
+    return lines
+
+
+def projection_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
+                        n_boot: int = N_BOOT) -> str:
+    """``projection.md`` of `monolib.report.statistics.projection_table`: per method, scenario and threshold, recall@k
+    in the scenario's camera and in its twin's, with the paired difference."""
+    k = int(table["k"].iloc[0]) if len(table) else 1
+    lines = [f"**The two cameras, threshold by threshold** (recall@{k}, `paper` protocol). The same encoder, "
+             f"sources, seeds and threshold, the graphs built in the original Monograph code's camera (`monograph`: "
+             f"f 577.35 / 433.01 px at 1024x768 scaled to the frames, Euclidean depth as z, lengths 1.5-2 times the "
+             f"true ones) and in the exact one (`exact`: each scene's own camera, planar depth). Mean over seeds "
+             f"[95% bootstrap interval, {n_boot} resamples of settings, queries and seeds]; Δ: paired difference "
+             f"(twin - scenario) on the same seeds, settings and queries; {STAR}: its interval excludes 0. "
+             f"Threshold 0 has no edges, so both cameras give the same graphs to the encoder (a control).", ""]
+    return "\n".join(lines + twin_rows(table, "projection", scenario_labels))
+
+
+def colour_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
+                    n_boot: int = N_BOOT) -> str:
+    """``colour.md`` of `monolib.report.statistics.colour_table`: per method, scenario and threshold, recall@k with
+    the node colours in the scenario's space and in its twin's, with the paired difference."""
+    k = int(table["k"].iloc[0]) if len(table) else 1
+    lines = [f"**The two colour spaces of the nodes, threshold by threshold** (recall@{k}, `paper` protocol). The same "
+             f"encoder, sources, camera, seeds and threshold, each node's median R, G, B taken over Hypersim's HDR "
+             f"`color.hdf5` (`hdr`: linear radiance, as the original code's and the published graphs hold it) or "
+             f"over the frame's tonemapped image (`tonemapped`: each frame's brightness divided out, gamma 1/2.2, "
+             f"0..1). The networks see the tonemapped image either way. Mean over seeds [95% bootstrap interval, "
+             f"{n_boot} resamples of settings, queries and seeds]; Δ: paired difference (twin - scenario) on the same "
+             f"seeds, settings and queries; {STAR}: its interval excludes 0.", ""]
+    return "\n".join(lines + twin_rows(table, "colour", scenario_labels))
 
 
 def protocols_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,

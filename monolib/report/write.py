@@ -24,7 +24,7 @@ import pandas as pd
 
 from monolib import io, params, paths
 from monolib.params import PAPER, SIBLINGS
-from monolib.report import figures, results, statistics, tables
+from monolib.report import figures, results, statistics, tables, training
 from monolib.retrieval import grid
 
 log = logging.getLogger(__name__)
@@ -81,7 +81,8 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``
       (``paper`` protocol);
     - ``projection.{md,csv}`` when a scenario of the tables has a twin in the other camera of the graph stage
-      (`monolib.report.statistics.projection_table`, ``paper`` protocol).
+      (`monolib.report.statistics.projection_table`, ``paper`` protocol); ``colour.{md,csv}`` likewise when one
+      has a twin with node colours in the other space (`monolib.report.statistics.colour_table`).
 
     `study_name` is a name or a loaded `monolib.params.Study`; `study` (default: ``params/<name>.yaml`` when it
     loads) gives variant descriptions, scenario information and the dataset folder. Labels default to the
@@ -108,6 +109,7 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     written: dict[str, Path] = {}
     io.write_text(out / "results.csv", numbers.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
     written["results"] = out / "results.csv"
+    written.update(training.write(study_name, out, cells, study))
 
     try:
         qv_all = results.query_table(study_name, cells)
@@ -189,11 +191,13 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
             written[f"ablation_{base}_md"], written[f"ablation_{base}_csv"] = (out / f"ablation_{base}.md",
                                                                                out / f"ablation_{base}.csv")
 
-    twins = statistics.projection_table(qv, iv, boot, info)
-    if len(twins):
-        io.write_text(out / "projection.md", tables.projection_markdown(twins, labels, n_boot))
-        io.write_text(out / "projection.csv", tables.csv_text(twins))
-        written["projection_md"], written["projection_csv"] = out / "projection.md", out / "projection.csv"
+    for axis, table_of, markdown_of in (("projection", statistics.projection_table, tables.projection_markdown),
+                                        ("colour", statistics.colour_table, tables.colour_markdown)):
+        twins = table_of(qv, iv, boot, info)
+        if len(twins):
+            io.write_text(out / f"{axis}.md", markdown_of(twins, labels, n_boot))
+            io.write_text(out / f"{axis}.csv", tables.csv_text(twins))
+            written[f"{axis}_md"], written[f"{axis}_csv"] = out / f"{axis}.md", out / f"{axis}.csv"
 
     dim_of = results.dim_settings(study_name, study)
     if dim_of is None:

@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from monolib.device import device, seed_everything
-from monolib.retrieval.gcn import EarlyStopping, draw_triplets
+from monolib.retrieval.gcn import draw_triplets, stopper_of
 
 log = logging.getLogger(__name__)
 
@@ -247,8 +247,8 @@ class CNNResult:
 def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torch.Tensor, val_settings, spec,
                   seed: int, batch_input, embed, threads: int = 2, deterministic: bool = True) -> CNNResult:
     """The GCN's training loop (`monolib.retrieval.gcn.train`) for an encoder of images (or of their features):
-    Adam, triplet margin loss, fresh per-setting triplets each epoch, early stopping on validation leave-one-out
-    recall@1, best state kept. `make_model()` builds the encoder (after the seeding); `batch_input(x, gen)` turns a
+    Adam, triplet margin loss, fresh per-setting triplets each epoch, the model kept and the stop by `spec`'s
+    selection (`monolib.retrieval.gcn.EarlyStopping`). `make_model()` builds the encoder (after the seeding); `batch_input(x, gen)` turns a
     batch of `train_x` rows (anchors, positives, negatives) into the model's input on the CPU, augmented with the
     generator `gen`; `embed(model, val_x)` gives the validation embeddings."""
     torch.set_num_threads(threads)
@@ -260,7 +260,7 @@ def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torc
                            weight_decay=spec.weight_decay)
     loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
     settings, val_settings = np.asarray(train_settings), np.asarray(val_settings)
-    stopper = EarlyStopping(spec.patience, seed, model)
+    stopper = stopper_of(spec, seed, model)
     t0 = time.perf_counter()
     for epoch in range(1, spec.epochs + 1):
         model.train()

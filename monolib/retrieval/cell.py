@@ -230,6 +230,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
         "depth_scale": sc.depth_scale if sc else None,
         "projection": study.projection(scenario) if sc and kind == "graph" else None,
+        "colour": study.colour(scenario) if sc and kind == "graph" else None,
         "protocol": {"settings": study.protocol.settings, "siblings": study.protocol.siblings,
                      "frames": study.protocol.frames, "queries": study.protocol.queries,
                      "positives": study.protocol.positives},

@@ -357,37 +357,84 @@ def leave_one_out_recall(emb: torch.Tensor, settings: np.ndarray) -> float:
     return float((np.asarray(settings)[nn_idx] == np.asarray(settings)).mean())
 
 
-class EarlyStopping:
-    """Validation after each epoch (leave-one-out recall@1 on the validation settings, then triplet loss on fixed
-    validation triplets), the history, the best state, and the stop after `patience` epochs without progress.
-    Shared by every encoder trained with the triplet loss (graphs here, images in `monolib.retrieval.baselines`)."""
+def leave_one_out_map(emb: torch.Tensor, settings: np.ndarray) -> float:
+    """Mean average precision of leave-one-out retrieval: each item queries all others, its own setting's items are
+    the relevant ones (items alone in their setting are left out). Unlike recall@1 it moves with every rank, so it
+    does not saturate once each item's nearest neighbour is right."""
+    codes = torch.as_tensor(np.unique(np.asarray(settings), return_inverse=True)[1].reshape(-1), device=emb.device)
+    d = torch.cdist(emb, emb)
+    d.fill_diagonal_(float("inf"))
+    order = d.argsort(dim=1, stable=True)[:, :-1]  # every other item, nearest first (the item itself last)
+    hits = (codes[order] == codes[:, None]).to(emb.dtype)
+    relevant = hits.sum(dim=1)
+    ranks = torch.arange(1, hits.shape[1] + 1, device=emb.device, dtype=emb.dtype)
+    ap = (hits * hits.cumsum(dim=1) / ranks).sum(dim=1) / relevant.clamp_min(1)
+    keep = relevant > 0
+    return float(ap[keep].mean()) if bool(keep.any()) else float("nan")
 
-    def __init__(self, patience: int, seed: int, model: nn.Module):
-        self.patience, self.seed = patience, seed
-        self.best = (-1.0, float("inf"))
+
+class EarlyStopping:
+    """Validation after each epoch (leave-one-out recall@1 and mean average precision on the validation settings,
+    triplet loss on fixed validation triplets), the history, the model kept, and the stop.
+
+    Which epoch's model is kept is `select` (`monolib.params.SELECT`): the best validation recall@1 (ties: the lower
+    validation loss), the best mean average precision (ties likewise), the lowest validation loss, or ``last`` (a
+    fixed schedule: every epoch replaces the one before, and training runs all its epochs). Epochs before
+    `min_epochs` are recorded but neither kept nor counted; training stops after `patience` counted epochs without
+    a better score. Shared by every encoder trained with the triplet loss (graphs here, images in
+    `monolib.retrieval.baselines` and `monolib.retrieval.pretrained`)."""
+
+    def __init__(self, patience: int, seed: int, model: nn.Module, select: str = "val_recall", min_epochs: int = 1):
+        self.patience, self.seed, self.select, self.min_epochs = patience, seed, select, min_epochs
+        self.best: Optional[tuple] = None
         self.best_state, self.best_epoch, self.bad_epochs = copy.deepcopy(model.state_dict()), 0, 0
         self.history: list[dict] = []
 
+    def score(self, row: dict) -> tuple:
+        """The score of an epoch's record under `select` (higher is better; NaN recall or precision counts 0)."""
+        zero = lambda v: 0.0 if np.isnan(v) else v  # noqa: E731
+        if self.select == "last":
+            return (row["epoch"],)
+        if self.select == "val_loss":
+            return (-row["val_loss"],)
+        return (zero(row["val_map" if self.select == "val_map" else "val_recall@1"]), -row["val_loss"])
+
     def step(self, model: nn.Module, epoch: int, train_loss: float, val_emb, val_settings, loss_fn,
-             progress: bool = False) -> bool:
-        """Record the epoch; True when training should stop."""
+             progress: bool = False, extra: Optional[dict] = None) -> bool:
+        """Record the epoch (with `extra` columns); True when training should stop."""
         val_settings = np.asarray(val_settings)
         if val_emb is not None and len(set(val_settings)) > 1:
-            val_recall = leave_one_out_recall(val_emb, val_settings)
+            val_recall, val_map = leave_one_out_recall(val_emb, val_settings), leave_one_out_map(val_emb, val_settings)
             va, vp, vn = draw_triplets(val_settings, np.random.default_rng(self.seed + 1))
             val_loss = float(loss_fn(val_emb[va], val_emb[vp], val_emb[vn]))
         else:
-            val_recall, val_loss = float("nan"), train_loss
-        self.history.append({"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "val_recall@1": val_recall})
+            val_recall, val_map, val_loss = float("nan"), float("nan"), train_loss
+        row = {"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "val_recall@1": val_recall,
+               "val_map": val_map, **(extra or {})}
         if progress:
-            log.info("epoch %d loss %.4f val loss %.4f val recall@1 %.3f", epoch, train_loss, val_loss, val_recall)
-        score = (0.0 if np.isnan(val_recall) else val_recall, -val_loss)
-        if score > (self.best[0], -self.best[1]):
-            self.best, self.best_epoch, self.bad_epochs = (score[0], val_loss), epoch, 0
+            log.info("epoch %d loss %.4f val loss %.4f val recall@1 %.3f val map %.3f", epoch, train_loss, val_loss,
+                     val_recall, val_map)
+        return self.advance(row, model)
+
+    def advance(self, row: dict, model: nn.Module) -> bool:
+        """Record an epoch's row (``epoch``, ``val_loss``, ``val_recall@1``, ``val_map``), keep `model`'s state when
+        it scores best; True when training should stop. Replaying recorded rows through it tells which epoch a rule
+        would have kept (`monolib.retrieval.model_selection`)."""
+        self.history.append(row)
+        if row["epoch"] < self.min_epochs:
+            return False
+        score = self.score(row)
+        if self.best is None or score > self.best:
+            self.best, self.best_epoch, self.bad_epochs = score, row["epoch"], 0
             self.best_state = copy.deepcopy(model.state_dict())
             return False
         self.bad_epochs += 1
         return self.bad_epochs >= self.patience
+
+
+def stopper_of(spec, seed: int, model: nn.Module) -> EarlyStopping:
+    """The `EarlyStopping` of a training spec (`GCNSpec`: patience, select, min_epochs)."""
+    return EarlyStopping(spec.patience, seed, model, spec.select, spec.min_epochs)
 
 
 @dataclass
@@ -399,8 +446,11 @@ class TrainResult:
 
 
 def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed: int, threads: int = 2,
-          progress: bool = False, deterministic: bool = True) -> TrainResult:
-    """Train the encoder with the triplet loss; keep the state with the best validation recall@1 (early stop)."""
+          progress: bool = False, deterministic: bool = True, on_epoch=None) -> TrainResult:
+    """Train the encoder with the triplet loss; keep the model that `spec`'s selection chooses (`EarlyStopping`).
+    `on_epoch(model)`, when given, runs after each epoch's validation (the model in eval mode) and returns extra
+    columns for that epoch's history row (a curve of the test metric, say); it must not draw from the seed's
+    random streams, so that the training is the same with and without it."""
     torch.set_num_threads(threads)
     seed_everything(seed, deterministic)
     rng = np.random.default_rng(seed)
@@ -412,7 +462,7 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
     loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
     settings = np.array([g.setting for g in train_graphs])
     val_settings = np.array([g.setting for g in val_graphs])
-    stopper = EarlyStopping(spec.patience, seed, model)
+    stopper = stopper_of(spec, seed, model)
     pool = GraphPool(train_graphs)
     t0 = time.perf_counter()
     for epoch in range(1, spec.epochs + 1):
@@ -445,7 +495,8 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
                 seen += b
         train_loss = sum(losses) / max(seen, 1)
         val_emb = embed(model, val_graphs) if len(val_graphs) else None
-        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn, progress):
+        extra = on_epoch(model) if on_epoch is not None else None
+        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn, progress, extra):
             break
     model.load_state_dict(stopper.best_state)
     return TrainResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)
