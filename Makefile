@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
+.PHONY: install study ablations test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
 
 install: $(STAMP)
 
@@ -60,6 +60,10 @@ zoo-pilot: install
 # moves those numbers on purpose: python tests/refresh_notebook_outputs.py, then review the diff.
 test: install
 	$(PY) -m pytest tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
+
+# the quick loop: the unit tests, without the end-to-end runs (the smoke study, papermill, nbval) marked slow
+test-fast: install
+	$(PY) -m pytest tests -m "not slow" -p no:cacheprovider -q --durations=10
 
 bench: install
 	$(VENV)/bin/monolib bench --out figures/bench.json

@@ -460,7 +460,14 @@ def localizer_costs(study_name: str = "quick", queries: int = 40, out: str | Non
     for method in names:
         with tempfile.TemporaryDirectory() as tmp:
             t = time.perf_counter()
-            db = localize.build_index(study, Path(tmp) / "db", method)
+            try:
+                db = localize.build_index(study, Path(tmp) / "db", method)
+            except localize.LocalizeError as e:  # HDR node colours: no database a photo can query
+                if localize.HDR_REFUSED not in str(e):
+                    raise
+                record["methods"][method] = {"kind": "graph", "refused": "graphs.colour: hdr"}
+                print(f"  {method:<17} graph refused: graphs.colour: hdr (a photo has no HDR radiance)")
+                continue
             index_s = time.perf_counter() - t
             meta, table, emb = localize.read_database(db)
             loc = localize.Localizer.open(db)
@@ -502,6 +509,9 @@ def localizer_table(record: dict) -> str:
              "| method | data | dimensions | bytes / frame | encoder state | ms / query | of which | recall@1 |",
              "|---|---|---:|---:|---:|---:|---|---:|"]
     for method, r in record["methods"].items():
+        if "refused" in r:
+            lines.append(f"| `{method}` | refused: `{r['refused']}` (a photo has no HDR radiance) | | | | | | |")
+            continue
         data = "RGB only" if r["kind"] == "image" else f"{r['scenario']} at {r['threshold']} m"
         parts = ", ".join(f"{k} {v:.1f}" for k, v in r["ms_per_query"].items())
         recall = "" if r["recall@1_mean_over_seeds"] is None else f"{r['recall@1_mean_over_seeds']:.1f}"

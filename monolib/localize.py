@@ -1,7 +1,7 @@
 """A localizer people can use: index the frames of known places, then find the place of new RGB images.
 
 `monolib index STUDY --out DB` embeds the study's test frames with the encoder of one finished cell (by default the
-best cell whose scenario uses predicted depth and predicted semantics, since a new image has neither) and stores
+best cell whose scenario uses predicted depth and predicted semantics, as a new image has neither) and stores
 `embeddings.npy`, `frames.csv` and `meta.json` (study, cell, and the tags of the perception models) in DB.
 `--method` names a graph method, or an image method (`monolib.methods`: colour histogram, ORB, the CNNs, the
 ImageNet descriptors), whose best cell's descriptor (and its vocabulary or weights) then makes the database.
@@ -153,7 +153,7 @@ def build_index(study: Study, out: str | Path, method: str | None = None) -> Pat
 
 
 META_KEYS = ("study", "study_file", "cell", "method", "scenario", "threshold", "seed", "models", "width", "height")
-# a database written before `projection` was stored (2026-12-01) holds graphs of the exact camera, the only one then
+# a database whose meta.json names no `projection` holds graphs of the exact camera
 DEFAULT_PROJECTION = "exact"
 
 

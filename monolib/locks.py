@@ -81,3 +81,9 @@ def study_lock(*folders: Path, wait: bool = True) -> Iterator[None]:
         for folder in sorted({Path(f).resolve() for f in folders}):
             stack.enter_context(_one(folder, wait))
         yield
+
+
+def of_study(study, wait: bool = True):
+    """The lock a study's writers hold: its own folder and the data folder it may share with its base study. Taken
+    by `monolib study` and `prepare`, and by a notebook around a stage it runs itself."""
+    return study_lock(study.dir, study.data_dir, wait=wait)

@@ -233,12 +233,12 @@ class Study:
     @property
     def dataset_root(self) -> Path:
         if self.dataset.root:
-            return resolve_path(self.dataset.root, self.path)
+            return resolve_path(self.dataset.root)
         return self.data_dir / "dataset"
 
     @property
     def metadata_dir(self) -> Optional[Path]:
-        return resolve_path(self.dataset.metadata_dir, self.path) if self.dataset.metadata_dir else None
+        return resolve_path(self.dataset.metadata_dir) if self.dataset.metadata_dir else None
 
     def projection(self, scenario: str) -> str:
         """The back-projection of a scenario's graphs: its own `projection`, else the study's `graphs.projection`."""
@@ -283,8 +283,11 @@ class Study:
         return d
 
 
-def resolve_path(value: str, study_path: Optional[str]) -> Path:
-    """A path from a study file: absolute, or relative to the project root."""
+def resolve_path(value: str) -> Path:
+    """A path from a study file: absolute, or relative to the project root (the folder of `pyproject.toml`),
+    wherever the study file lives and whatever the working directory. One rule for every study: an inherited
+    (`extends:`) path means the same in the file that inherits it, and the committed studies' paths
+    (``runs/...``, ``monolib/resources/zoo/...``) read the same from a copy of a study file kept elsewhere."""
     p = Path(value).expanduser()
     return p if p.is_absolute() else (paths.ROOT / p)
 
@@ -367,10 +370,10 @@ def _check(study: Study, check_files: bool = True) -> None:
         bad("dataset.source", f"expected 'synth' or 'hypersim', got {ds.source!r}")
     if ds.source == "hypersim" and not ds.root and not study.graphs_root:
         bad("dataset.root", "a hypersim study needs the folder of the download")
-    if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root, study.path).is_dir() and not study.graphs_root:
-        bad("dataset.root", f"folder not found: {resolve_path(ds.root, study.path)}")
-    if check_files and study.graphs_root and not resolve_path(study.graphs_root, study.path).is_dir():
-        bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root, study.path)}")
+    if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root).is_dir() and not study.graphs_root:
+        bad("dataset.root", f"folder not found: {resolve_path(ds.root)}")
+    if check_files and study.graphs_root and not resolve_path(study.graphs_root).is_dir():
+        bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root)}")
     for key in ("width", "height"):
         v = getattr(ds, key)
         if not 16 <= v <= {"width": 1024, "height": 768}[key]:
@@ -444,10 +447,10 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"perception.depth[{i}].backbone", f"an AdelaiDepth checkpoint needs backbone resnet50 or resnext101_32x8d, got {d.backbone!r}")
         if d.decoder_width < 8 or d.decoder_width % 2:
             bad(f"perception.depth[{i}].decoder_width", f"expected an even number >= 8, got {d.decoder_width}")
-        if d.checkpoint and not resolve_path(d.checkpoint, study.path).is_file():
-            bad(f"perception.depth[{i}].checkpoint", f"file not found: {resolve_path(d.checkpoint, study.path)}")
-    if seg.checkpoint and not resolve_path(seg.checkpoint, study.path).is_file():
-        bad("perception.segmentation.checkpoint", f"file not found: {resolve_path(seg.checkpoint, study.path)}")
+        if d.checkpoint and not resolve_path(d.checkpoint).is_file():
+            bad(f"perception.depth[{i}].checkpoint", f"file not found: {resolve_path(d.checkpoint)}")
+    if seg.checkpoint and not resolve_path(seg.checkpoint).is_file():
+        bad("perception.segmentation.checkpoint", f"file not found: {resolve_path(seg.checkpoint)}")
     for where, spec, task in study.perception_specs():
         if spec.weights and spec.checkpoint:
             bad(f"{where}.weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
@@ -457,8 +460,8 @@ def _check(study: Study, check_files: bool = True) -> None:
             bad(f"{where}.batch_size", f"expected at least 2 frames per training batch, got {spec.batch_size}")
         if spec.val_settings < 0:
             bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
-        if spec.weights and check_files and not resolve_path(spec.weights, study.path).is_file():
-            bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights, study.path)}")
+        if spec.weights and check_files and not resolve_path(spec.weights).is_file():
+            bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights)}")
     if study.graphs.projection not in PROJECTIONS:
         bad("graphs.projection", f"expected one of {', '.join(PROJECTIONS)}, got {study.graphs.projection!r}")
     if study.graphs.colour not in COLOURS:

@@ -1,5 +1,5 @@
 """Nothing wrong is ever cached: missing predictions stop the graph stage, caches know the code that made them,
-corrupt cached files are recomputed, and a seed gives the same weights (issue 12).
+corrupt cached files are recomputed, and a seed gives the same weights.
 
 Runs on the smoke study's mini-Hypersim (rendered once per session), with `runs/` in a temporary folder.
 """
@@ -93,7 +93,7 @@ def test_a_missing_file_of_a_download_is_an_empty_graph_counted_in_graph_sizes(s
 
 
 def test_a_cell_key_holds_the_frames_the_graph_stage_could_not_read(study, tmp_path):
-    """Issue 26: the graphs of a download with a file lost are other graphs (an empty one for that frame): the cells
+    """The graphs of a download with a file lost are other graphs (an empty one for that frame): the cells
     on them have another key, though every upstream key is the same."""
     one = {"s1": study.scenarios["s1"]}
     whole = dataclasses.replace(study, scenarios=one)
@@ -163,8 +163,8 @@ def test_truncated_weights_are_removed_and_reported(tmp_path, caplog):
 ])
 def test_a_failure_outside_the_file_removes_nothing(tmp_path, failure):
     """Valid weights that cannot be read here (no permission, an I/O error, a stale network handle, the device out of
-    memory): one clear error naming the file, and the file is still there (issue 19: `monolib localize` on a
-    model someone else owns removed it)."""
+    memory): one clear error naming the file, and the file is still there (a reader never removes a
+    model it cannot open: it may be someone else's)."""
     from monolib.perception import segmentation as seg
 
     spec = load_study("smoke").perception.segmentation

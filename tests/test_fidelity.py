@@ -1,5 +1,6 @@
 """Data fidelity (monolib.graphs.fidelity): known answers on hand-built graphs, agreement with the shared reference script,
 and the real published sample."""
+import dataclasses
 import json
 import math
 import random
@@ -13,6 +14,7 @@ from torch_geometric.data import Data
 
 from monolib import paths
 from monolib.graphs import fidelity, published
+from monolib.params import load_study
 
 SHARED = paths.ROOT.parent / "shared"
 REFERENCE_SCRIPT = SHARED / "tools" / "fidelity_reference.py"
@@ -105,7 +107,7 @@ def test_empty_inputs_give_nan_not_a_crash(tmp_path, monkeypatch):
     # and the files are still written, with NaN in the table
     monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    study = type("S", (), {"name": "empty_test"})()
+    study = dataclasses.replace(load_study("smoke"), name="empty_test")
     _, md = fidelity.write(study, {"this study, train": fidelity.split_statistics([]), "this study, test": stats})
     text = md.read_text()
     assert "NaN / NaN / NaN / NaN" in text and "0 of 23 pass" in text and "wall colour ratio (graph node colours) >= 2.0: NaN FAIL" in text
@@ -120,7 +122,7 @@ def test_reference_file_is_read_and_the_tables_are_written(tmp_path, monkeypatch
     assert len([k for k in ref["real Hypersim, train"] if k.startswith("label frequency")]) == 20
     monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    study = type("S", (), {"name": "table_test"})()
+    study = dataclasses.replace(load_study("smoke"), name="table_test")
     stats = fidelity.split_statistics(two_settings())
     csv_path, md_path = fidelity.write(study, {"this study, train": stats, "this study, test": stats})
     assert csv_path.parent == paths.figures_dir("table_test") == tmp_path / "runs" / "table_test" / "figures"
@@ -135,8 +137,8 @@ def test_reference_file_is_read_and_the_tables_are_written(tmp_path, monkeypatch
     md = md_path.read_text()
     assert ("| nodes per graph: mean / median / p10 / p90 | 3.0 / 3 / 3 / 3 | 3.0 / 3 / 3 / 3 | 8.2 / 9 / 3 / 12 "
             "| 2.8 / 2 / 1 / 6 |") in md
-    assert "| wall colour sd within / between settings (ratio), node colours | 0.20 / 1.00 (5.0) |" in md
-    assert "| wall colour sd within / between settings (ratio), the graphs' node colours | NaN / NaN (NaN) |" in md
+    assert "| wall colour sd within / between settings (ratio), node colours (hdr) | 0.20 / 1.00 (5.0) |" in md
+    assert "| wall colour sd within / between settings (ratio), the graphs' node colours (hdr) | NaN / NaN (NaN) |" in md
     assert "| wall colour sd within / between settings (ratio), HDR color.hdf5 medians | NaN / NaN (NaN) |" in md
     assert ref["real Hypersim, train"]["pair length (monograph), median"] == 4.31
     assert ref["real Hypersim, test"]["edges per graph at 10 m (monograph)"] == 4.07

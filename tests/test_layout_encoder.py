@@ -1,4 +1,4 @@
-"""The layout encoder (issue 28): layout features of nodes and edges worked out by hand in both projections, the
+"""The layout encoder: layout features of nodes and edges worked out by hand in both projections, the
 graphs the encoder reads (and the published graphs it cannot), negatives and batches drawn over families, the pair
 readout, the new convolution and pooling, family mining in training, and the study keys that choose them."""
 import dataclasses

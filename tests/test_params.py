@@ -1,11 +1,12 @@
 """Study files: the committed ones load; bad ones fail with one error naming the key."""
 import math
+import os
 
 import pytest
 import yaml
 
 from monolib import paths
-from monolib.params import StudyError, load_study
+from monolib.params import StudyError, load_study, resolve_path
 
 
 def _merged(base: dict, over: dict) -> dict:
@@ -121,6 +122,31 @@ def test_missing_data_folder_names_the_key(tmp_path):
         load_study(p)
 
 
+@pytest.mark.parametrize("where", ["params", "elsewhere"])
+def test_relative_paths_resolve_against_the_project_root(tmp_path, monkeypatch, where):
+    """A relative path in a study file means a path under the project root, whether the file sits in params/ or in
+    any other folder (documented in `monolib.params.resolve_path`); an absolute path is taken as it is."""
+    monkeypatch.chdir(tmp_path)  # not the working directory either
+    folder = (paths.PARAMS if where == "params" else tmp_path / "studies")
+    folder.mkdir(exist_ok=True)
+    graphs = tmp_path / "graphs"
+    (graphs / "train").mkdir(parents=True)
+    relative = os.path.relpath(graphs, paths.ROOT)
+    text = (paths.PARAMS / "published.yaml").read_text()
+    p = folder / f"_test_relative_{where}.yaml"
+    try:
+        p.write_text(text.replace("runs/published_graphs", relative))
+        assert resolve_path(relative) == paths.ROOT / relative
+        assert (paths.ROOT / load_study(p).graphs_root).resolve() == graphs.resolve()
+        p.write_text(text.replace("runs/published_graphs", str(graphs)))
+        assert resolve_path(load_study(p).graphs_root) == graphs
+        p.write_text(text.replace("runs/published_graphs", "no/such/folder"))
+        with pytest.raises(StudyError, match=f"graphs_root: folder not found: {paths.ROOT / 'no/such/folder'}"):
+            load_study(p)
+    finally:
+        p.unlink(missing_ok=True)
+
+
 def test_an_extending_study_merges_key_by_key(tmp_path):
     """`extends:` takes the base file as defaults; mappings merge, lists are replaced, and a mapping the extending
     file re-lists completely keeps its own order (the ablations study puts quick's `ours` last)."""
@@ -167,7 +193,7 @@ def test_threshold_zero_and_no_siblings_protocol_are_allowed(tmp_path):
     (lambda d: d["scenarios"]["s2"].update(thresholds=[1, 1.0]), "scenarios.s2.thresholds: 1.0 and 1.0 name the same"),
 ])
 def test_values_the_code_cannot_use_are_refused_when_the_study_loads(tmp_path, change, key):
-    """Each value of issue 19's list: one StudyError naming the key and what is expected, before any work."""
+    """Each bad value: one StudyError naming the key and what is expected, before any work."""
     with pytest.raises(StudyError, match=key):
         load_study(write(tmp_path, change))
 

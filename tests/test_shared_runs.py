@@ -117,6 +117,32 @@ def test_a_second_lock_names_the_first_and_a_killed_holder_leaves_none(tmp_path)
     assert str(tmp_path.resolve()) not in os.environ.get(locks.ENV, "")
 
 
+def test_a_notebook_that_writes_waits_for_the_studys_lock(smoke_study, tmp_path):
+    """`notebooks/data.ipynb` renders the dataset when it is missing, so it takes the study's lock as `monolib study`
+    does: while another process holds it, the notebook says so and waits, then runs to the end."""
+    holder = subprocess.Popen([sys.executable, "-c", "import time; from monolib import locks; from monolib.params "
+                               "import load_study\nwith locks.of_study(load_study('smoke')):\n"
+                               "    print('held', flush=True); time.sleep(600)"], stdout=subprocess.PIPE, text=True)
+    papermill = Path(sys.executable).with_name("papermill")
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        nb = subprocess.Popen([str(papermill), str(paths.NOTEBOOKS / "data.ipynb"), str(tmp_path / "out.ipynb"),
+                               "--log-output"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                              env={**os.environ, "MPLBACKEND": "agg"})
+        seen = []
+        for line in nb.stdout:  # ends at the notebook's end: a notebook that does not wait fails here
+            seen.append(line)
+            if "waiting for it to finish" in line:
+                break
+        assert any(f"in use by pid {holder.pid}" in ln for ln in seen), "".join(seen)[-3000:]
+        assert nb.poll() is None  # still waiting
+    finally:
+        holder.send_signal(signal.SIGKILL)
+        holder.wait()
+    rest, _ = nb.communicate(timeout=600)
+    assert nb.returncode == 0, rest[-3000:]
+
+
 def test_a_render_removes_only_the_leftovers_of_ended_processes(smoke_study):
     """`render_dataset` on a rendered dataset beside a render in progress (a living process of this host), one of
     another host, and the leftovers of an ended process and of older code: only the last two go."""

@@ -1,5 +1,5 @@
 """The model zoo end to end at smoke size: pretrain, ship half-precision weights with a manifest, use them in a
-study as inference, and refuse a file that is altered or of another architecture (issue 10)."""
+study as inference, and refuse a file that is altered or of another architecture."""
 import dataclasses
 import hashlib
 import json

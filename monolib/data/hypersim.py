@@ -1,4 +1,4 @@
-"""Reading the Hypersim layout (../shared/docs/hypersim-format.md): settings, scenes, frames, cameras, tonemap.
+"""Reading the Hypersim layout (ml-hypersim's documented file format): settings, scenes, frames, cameras, tonemap.
 
 One reader serves a real Hypersim download and the mini-Hypersim rendered by `monolib.data.synth`, which writes the
 same layout. Words: a *setting* is a folder ``ai_VVV_NNN``, a *scene* is one of its cameras ``cam_XX``, a *frame*

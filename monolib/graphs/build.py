@@ -9,7 +9,7 @@ Two back-projections (`PROJECTIONS`, the study key `graphs.projection`):
 - ``exact``: each scene's own camera (`Camera.rays`, Hypersim's `M_cam_from_uv`, tilt-shift included) with planar
   depth: true metres, x right, y up, z backward.
 - ``monograph``: the original Monograph code's (`GenerateSceneGraph.py` and `config.py` of
-  rupalsaxena/Monograph-Image-Retrieval, shared/docs/real-hypersim-statistics.md "Geometry"): its own pinhole camera
+  rupalsaxena/Monograph-Image-Retrieval): its own pinhole camera
   of 1024x768, f_w = 577.35 and f_h = 433.01 px (`MONOGRAPH_F_W`, `MONOGRAPH_F_H`), scaled to the frame's size
   (f times W / 1024 and H / 768), principal point (W // 2, H // 2), and the Euclidean distance `depth_meters` used
   as z: ``x = (j - W // 2) z / f_w``, ``y = (i - H // 2) z / f_h`` for pixel (row i, column j), axes as the

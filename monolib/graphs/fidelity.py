@@ -1,8 +1,9 @@
 """Data fidelity: do a study's ground-truth scene graphs look like the scene graphs of real Hypersim?
 
-The statistics and their definitions are those of `shared/docs/real-hypersim-statistics.md` (nodes per graph,
-label-set Jaccard within / across settings, wall and floor colour distinctiveness, label frequency). They are computed
-the way `shared/tools/fidelity_reference.py` computes them, draw for draw, so the two agree:
+The statistics are those measured on real Hypersim's published scene graphs (nodes per graph, label-set Jaccard
+within / across settings, wall and floor colour distinctiveness, label frequency; the real values in
+`monolib/resources/fidelity_reference.csv`). They are computed the way the reference script that measured the real
+values computes them, draw for draw, so the two agree:
 
 - a split's graphs are grouped by setting in the order the settings first appear; only the settings with at least
   `MIN_FRAMES` frames are used, and every statistic is taken over the frames of those settings;
@@ -14,11 +15,11 @@ the way `shared/tools/fidelity_reference.py` computes them, draw for draw, so th
   settings with at least `MIN_COLOUR_FRAMES` frames showing the label (within); the standard deviation of the
   per-setting mean log colours, averaged over R, G, B (between); ratio = between / within.
 
-Geometry and light, like with like (the doc's sections "Geometry" and "Light"):
+Geometry and light, like with like:
 
 - the frames: every `DEPTH_EVERY`-th frame of the split (`light_sample`; the training split with its validation
-  settings: the dataset's training split in its split file's order), the frames that
-  `shared/tools/depth_light_reference.py` reads, so that the two agree;
+  settings: the dataset's training split in its split file's order), the frames that the reference measurement of
+  real Hypersim read, so that the two agree;
 - pixel depth: the Euclidean `depth_meters` of every valid pixel (finite, > 0) of those frames, read from the
   files: p10, p25, median, p75, p90 and the share beyond `FAR` m, beside Hypersim's own image statistics;
 - node pairs in the original code's camera (`monolib.graphs.build`, projection ``monograph``): every pair i < j of
@@ -67,7 +68,7 @@ REFERENCE_CSV = paths.RESOURCES / "fidelity_reference.csv"
 SPLITS = ("train", "test")
 
 NODE_STATS = ("mean", "median", "p10", "p90")
-# the generator's acceptance targets (issue 9), checked on the training split
+# the generator's acceptance targets of scene graphs, checked on the training split
 TARGET_NODES = (7.0, 10.0)
 TARGET_JACCARD_WITHIN = 0.65
 TARGET_JACCARD_ACROSS = 0.40
@@ -75,7 +76,7 @@ TARGET_COLOUR_RATIO = 2.0
 TARGET_FREQUENT = ("wall", "floor", "otherprop", "chair", "lamp", "ceiling")
 TARGET_FREQUENCY = 0.30
 
-DEPTH_EVERY = 2          # pixel depth: every 2nd frame of the split (as shared/tools/depth_light_reference.py)
+DEPTH_EVERY = 2          # pixel depth: every 2nd frame of the split (as the reference measurement)
 MAX_DEPTH_FRAMES = 1000  # ... or fewer frames, evenly spaced, on a large split (a real download)
 MAX_DEPTH_PIXELS = 256 * 192  # a larger frame gives every k-th valid pixel, about this many (quick: all of them)
 DEPTH_QUANTILES = (("p10", 10), ("p25", 25), ("median", 50), ("p75", 75), ("p90", 90))
@@ -83,7 +84,7 @@ FAR = 20.0               # metres: the share of pixels beyond (views through win
 PAIR_THRESHOLDS = (1.0, 2.0, 5.0, 10.0)
 PAIR_STATS = (("p10", 10), ("median", 50), ("p90", 90))
 MONOGRAPH = "monograph"
-# the generator's acceptance targets of real depth and light (issue 25), checked on the training split: (low, high)
+# the generator's acceptance targets of real depth and light, checked on the training split: (low, high)
 TARGET_RANGES = {
     "pixel depth, median": (4.0, 5.6), "pixel depth, p90": (10.0, math.inf),
     f"pixel depth, share beyond {FAR:g} m": (0.02, 0.10),
@@ -218,7 +219,7 @@ def light_sample(graphs: list) -> list:
     """The frames of a split that the geometry and light statistics read: every `DEPTH_EVERY`-th (or fewer, evenly
     spaced, so that at most `MAX_DEPTH_FRAMES`), in order. For the training split pass its training and validation
     settings together (`graphs["train"] + graphs["val"]`, the dataset's training split in the order of its split
-    file): the frames `shared/tools/depth_light_reference.py` reads."""
+    file): the frames the reference measurement of real Hypersim read."""
     return graphs[:: max(DEPTH_EVERY, -(-len(graphs) // MAX_DEPTH_FRAMES))]
 
 
@@ -412,7 +413,7 @@ def frequency_line(stats: dict[str, float], top: int = TOP_LABELS) -> str:
 
 def acceptance(train: dict[str, float]) -> list[tuple[str, bool]]:
     """The generator's acceptance targets on the training split: [(text with the measured value, passed)]: the
-    scene-graph targets (issue 9), then those of real depth and light (`TARGET_RANGES`)."""
+    scene-graph targets, then those of real depth and light (`TARGET_RANGES`)."""
     nan = float("nan")
     nodes = train.get("nodes per graph, mean", nan)
     within = train.get("label-set Jaccard, within settings", nan)
@@ -471,14 +472,14 @@ def markdown(study_name: str, sources: dict[str, dict[str, float]], colour: str 
     frames = {src: _number(st.get("geometry and light, frames", float("nan")), 0) for src, st in sources.items()
               if src.startswith("this study")}
     lines = [f"# Data fidelity of `{study_name}`: ground-truth scene graphs against real Hypersim", "",
-             f"Definitions: shared/docs/real-hypersim-statistics.md (settings with >= {MIN_FRAMES} frames; "
+             f"Definitions: `monolib/graphs/fidelity.py` (settings with >= {MIN_FRAMES} frames; "
              f"{PAIRS} seeded pairs; colour sd in log space over settings with >= {MIN_COLOUR_FRAMES} frames showing "
-             "the label). Real Hypersim: transcribed from that doc (monolib/resources/fidelity_reference.csv). "
-             "This table is computed as shared/tools/fidelity_reference.py computes it, on the ground-truth graphs "
+             "the label). Real Hypersim: measured on its published scene graphs and depth images "
+             "(monolib/resources/fidelity_reference.csv), computed here the same way, on the ground-truth graphs "
              f"of each split. Node colours: the graphs' own, {COLOUR_SPACES[colour]}.", ""]
     lines += table(graph_rows) + [""]
     lines += [f"**Geometry.** On every {DEPTH_EVERY}nd frame of each split (the training split with its validation "
-              f"settings: the frames shared/tools/depth_light_reference.py reads; "
+              f"settings: the frames the reference measurement read; "
               + ", ".join(f"{src}: {n} frames" for src, n in frames.items()) + "). Pixel depth: the Euclidean "
               "depth_meters of every valid pixel, read from the files (real Hypersim: its depth histograms over all "
               "public images, not per split). Node pairs: every pair i < j of every ground-truth graph in the "

@@ -138,7 +138,7 @@ def _evenly(items: list, n: int) -> list:
 
 def select(study: Study) -> dict[str, list[Data]]:
     """Train / val / test graphs of a published-graphs study, selected as `selection.select_frames` does."""
-    root = resolve_path(study.graphs_root, study.path)
+    root = resolve_path(study.graphs_root)
     pr = study.protocol
     by_setting: dict[str, dict[str, list[Data]]] = {}
     for split in ("train", "test"):

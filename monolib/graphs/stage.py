@@ -65,7 +65,7 @@ def published_fingerprint(study: Study) -> Optional[str]:
     """The published graph files of a study (`graphs_root`) by name and size, not by where they are."""
     if not study.graphs_root:
         return None
-    root = resolve_path(study.graphs_root, study.path)
+    root = resolve_path(study.graphs_root)
     return key_of(sorted(f"{p.relative_to(root)}:{p.stat().st_size}" for p in root.glob("*/*_graphs.pt")))
 
 

@@ -30,7 +30,7 @@ from monolib.io import save_torch
 from monolib.params import EFFICIENTNET_BACKBONES
 from monolib.perception import imagenet
 from monolib.perception.segmentation import (
-    as_images, cached_weights, colour_jitter, fit, normalise, on_device, precision, resize_image, resize_nearest,
+    FitOptions, as_images, cached_weights, colour_jitter, fit, normalise, on_device, precision, resize_image, resize_nearest,
     to_batch
 )
 from monolib.progress import tqdm
@@ -437,8 +437,8 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
         sc = evaluate_cached(model, xv, dv)
         return {f"val_{k}": v for k, v in sc.items() if k != "frames"}, sc["delta1"]
 
-    model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history, progress,
-                max_steps, step_callback, resume, on_epoch)
+    model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history,
+                FitOptions(progress, max_steps, step_callback, resume, on_epoch))
     return model, history
 
 

@@ -125,8 +125,8 @@ def map_keys(state: dict[str, torch.Tensor], target: dict[str, torch.Tensor], wh
 
 def timm_name(name: str) -> str:
     """timm's model of encoder `name`: the TensorFlow-ported variant (``tf_``: TensorFlow's "same" padding), which
-    is how these weights were trained. With timm's symmetric padding the same tensors classify worse (measured on
-    2026-11-30: the cat photo p = 0.62 instead of 0.79)."""
+    is how these weights were trained. With timm's symmetric padding the same tensors classify worse (measured:
+    the cat photo p = 0.62 instead of 0.79)."""
     return f"tf_{name}"
 
 

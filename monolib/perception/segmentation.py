@@ -11,6 +11,7 @@ import contextlib
 import copy
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -111,10 +112,83 @@ def colour_jitter(x: torch.Tensor, gen: torch.Generator, strength: float = 0.3) 
     return x.clamp(0, 255)
 
 
+@dataclass
+class FitOptions:
+    """How `fit` runs, beside what it trains: the progress bar, a step limit (tests), a callback per step, the
+    resume file and a callback per epoch. Shared by the segmentation and depth trainers."""
+    progress: bool = True
+    max_steps: Optional[int] = None
+    step_callback: Optional[Callable[[int, float], None]] = None
+    resume: Optional[Path] = None
+    on_epoch: Optional[Callable[[nn.Module, dict], None]] = None
+
+
+@dataclass
+class _FitState:
+    """The state of a training run that a resume file holds beside the model, optimiser and schedule."""
+    best: float = -np.inf
+    best_state: Optional[dict] = None
+    step: int = 0
+    epoch: int = 0
+    spent: float = 0.0
+
+
+def _load_resume(path: Path, model, opt, sched, gen: torch.Generator, history: dict, spec) -> _FitState:
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    model.load_state_dict(state["model"])
+    opt.load_state_dict(state["optimizer"])
+    sched.load_state_dict(state["scheduler"])
+    gen.set_state(state["generator"])
+    torch.set_rng_state(state["torch_rng"])
+    np.random.set_state(state["numpy_rng"])
+    history.update(state["history"])
+    log.info("%s: resumed after epoch %d of %d (%s)", spec.name, state["epoch"], spec.epochs, path)
+    print(f"{spec.name}: resumed after epoch {state['epoch']} of {spec.epochs} ({path})", flush=True)
+    return _FitState(state["best"], state["best_state"], state["step"], state["epoch"], state["spent"])
+
+
+def _save_resume(path: Path, model, opt, sched, gen: torch.Generator, history: dict, st: _FitState) -> None:
+    save_torch(path, {"model": model.state_dict(), "optimizer": opt.state_dict(),
+                      "scheduler": sched.state_dict(), "generator": gen.get_state(),
+                      "torch_rng": torch.get_rng_state(), "numpy_rng": np.random.get_state(),
+                      "best": st.best, "best_state": st.best_state, "step": st.step, "epoch": st.epoch,
+                      "spent": st.spent, "history": {k: v for k, v in history.items()}})
+
+
+def _train_epoch(model, spec, n_train: int, batch_loss: Callable, opt, sched, gen: torch.Generator, epoch: int,
+                 total: int, st: _FitState, options: FitOptions) -> list[float]:
+    """One epoch of shuffled batches; the losses of its steps (advances ``st.step``)."""
+    steps_per_epoch = max(1, int(np.ceil(n_train / spec.batch_size)))
+    model.train()
+    order = torch.randperm(n_train, generator=gen)
+    losses = []
+    bar = tqdm(range(steps_per_epoch), desc=f"{spec.name} epoch {epoch + 1}/{spec.epochs}",
+               disable=not options.progress, leave=False)
+    for b in bar:
+        idx = order[b * spec.batch_size : (b + 1) * spec.batch_size]
+        if len(idx) < 2:  # BatchNorm needs two samples
+            continue
+        loss = batch_loss(model, idx)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if st.step < total:
+            sched.step()
+        st.step += 1
+        losses.append(loss.item())
+        bar.set_postfix(loss=f"{losses[-1]:.3f}")
+        if options.step_callback:
+            options.step_callback(st.step, losses[-1])
+        if options.max_steps and st.step >= options.max_steps:
+            break
+    if not losses:  # never cache an untrained network as trained
+        raise ValueError(f"{spec.name}: epoch {epoch + 1} ran no training step ({n_train} training frames, "
+                         f"batch_size {spec.batch_size}): a step needs a batch of at least 2 frames")
+    return losses
+
+
 def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Optional[Callable],
-        gen: torch.Generator, history: dict, progress: bool = True, max_steps: Optional[int] = None,
-        step_callback: Optional[Callable[[int, float], None]] = None, resume: Optional[Path] = None,
-        on_epoch: Optional[Callable[[nn.Module, dict], None]] = None) -> nn.Module:
+        gen: torch.Generator, history: dict, options: Optional[FitOptions] = None) -> nn.Module:
     """The training loop of both perception networks: AdamW + one-cycle schedule over `spec.epochs` epochs of
     shuffled batches, validation after each epoch, and the weights of the best epoch kept.
 
@@ -122,56 +196,24 @@ def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Op
     (record entries, selection metric; higher is better, NaN: fall back to minus the training loss). Appends one
     record per epoch to ``history["epochs"]`` and sets ``best_epoch`` and ``train_seconds``.
 
-    `resume`: a file written atomically after every epoch (weights, optimiser, schedule, every random state, the
-    history so far, the best epoch's weights); when it exists the run goes on after its last epoch and ends with
-    the same weights as an uninterrupted run. `on_epoch(model, record)` is called after validation (in eval mode)
-    and may add entries to the record (the zoo's learning curve on another study's test split); its time is not
-    counted in ``train_seconds``. Each record holds ``train_seconds``, the training time up to its epoch's end.
+    ``options.resume``: a file written atomically after every epoch (weights, optimiser, schedule, every random
+    state, the history so far, the best epoch's weights); when it exists the run goes on after its last epoch and
+    ends with the same weights as an uninterrupted run. ``options.on_epoch(model, record)`` is called after
+    validation (in eval mode) and may add entries to the record (the zoo's learning curve on another study's test
+    split); its time is not counted in ``train_seconds``. Each record holds ``train_seconds``, the training time up
+    to its epoch's end.
     """
+    options = options or FitOptions()
     opt = torch.optim.AdamW(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
-    steps_per_epoch = max(1, int(np.ceil(n_train / spec.batch_size)))
-    total = spec.epochs * steps_per_epoch
+    total = spec.epochs * max(1, int(np.ceil(n_train / spec.batch_size)))
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=spec.lr, total_steps=total, pct_start=0.15)
-    best, best_state, step, start, spent = -np.inf, None, 0, 0, 0.0
-    if resume is not None and Path(resume).is_file():
-        state = torch.load(resume, map_location="cpu", weights_only=False)
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["optimizer"])
-        sched.load_state_dict(state["scheduler"])
-        gen.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])
-        np.random.set_state(state["numpy_rng"])
-        best, best_state, step, start, spent = state["best"], state["best_state"], state["step"], state["epoch"], state["spent"]
-        history.update(state["history"])
-        log.info("%s: resumed after epoch %d of %d (%s)", spec.name, start, spec.epochs, resume)
-        print(f"{spec.name}: resumed after epoch {start} of {spec.epochs} ({resume})", flush=True)
+    resume = options.resume
+    st = (_load_resume(Path(resume), model, opt, sched, gen, history, spec)
+          if resume is not None and Path(resume).is_file() else _FitState())
     t_train = time.perf_counter()
-    for epoch in range(start, spec.epochs):
+    for epoch in range(st.epoch, spec.epochs):
         te = time.perf_counter()
-        model.train()
-        order = torch.randperm(n_train, generator=gen)
-        losses = []
-        bar = tqdm(range(steps_per_epoch), desc=f"{spec.name} epoch {epoch + 1}/{spec.epochs}", disable=not progress, leave=False)
-        for b in bar:
-            idx = order[b * spec.batch_size : (b + 1) * spec.batch_size]
-            if len(idx) < 2:  # BatchNorm needs two samples
-                continue
-            loss = batch_loss(model, idx)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            if step < total:
-                sched.step()
-            step += 1
-            losses.append(loss.item())
-            bar.set_postfix(loss=f"{losses[-1]:.3f}")
-            if step_callback:
-                step_callback(step, losses[-1])
-            if max_steps and step >= max_steps:
-                break
-        if not losses:  # never cache an untrained network as trained
-            raise ValueError(f"{spec.name}: epoch {epoch + 1} ran no training step ({n_train} training frames, "
-                             f"batch_size {spec.batch_size}): a step needs a batch of at least 2 frames")
+        losses = _train_epoch(model, spec, n_train, batch_loss, opt, sched, gen, epoch, total, st, options)
         rec = {"epoch": epoch + 1, "train_loss": float(np.mean(losses))}
         metric = float("nan")
         if validate is not None:
@@ -180,27 +222,23 @@ def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Op
         if not np.isfinite(metric):
             metric = -rec["train_loss"]
         rec["seconds"] = time.perf_counter() - te
-        rec["train_seconds"] = spent + time.perf_counter() - t_train
-        if metric > best or best_state is None:
-            best, best_state, history["best_epoch"] = metric, copy.deepcopy(model.state_dict()), epoch + 1
-        if on_epoch is not None:
+        rec["train_seconds"] = st.spent + time.perf_counter() - t_train
+        if metric > st.best or st.best_state is None:
+            st.best, st.best_state, history["best_epoch"] = metric, copy.deepcopy(model.state_dict()), epoch + 1
+        if options.on_epoch is not None:
             t_cb = time.perf_counter()
             model.eval()
-            on_epoch(model, rec)
+            options.on_epoch(model, rec)
             t_train += time.perf_counter() - t_cb  # the callback's time is not training time
         history["epochs"].append(rec)
         log.info("%s epoch %d: %s", spec.name, epoch + 1, rec)
         if resume is not None:
-            save_torch(resume, {"model": model.state_dict(), "optimizer": opt.state_dict(),
-                                "scheduler": sched.state_dict(), "generator": gen.get_state(),
-                                "torch_rng": torch.get_rng_state(), "numpy_rng": np.random.get_state(),
-                                "best": best, "best_state": best_state, "step": step, "epoch": epoch + 1,
-                                "spent": spent + time.perf_counter() - t_train,
-                                "history": {k: v for k, v in history.items()}})
-        if max_steps and step >= max_steps:
+            saved = _FitState(st.best, st.best_state, st.step, epoch + 1, st.spent + time.perf_counter() - t_train)
+            _save_resume(resume, model, opt, sched, gen, history, saved)
+        if options.max_steps and st.step >= options.max_steps:
             break
-    history["train_seconds"] = spent + time.perf_counter() - t_train
-    model.load_state_dict(best_state)
+    history["train_seconds"] = st.spent + time.perf_counter() - t_train
+    model.load_state_dict(st.best_state)
     model.eval()
     return model
 
@@ -353,7 +391,7 @@ def scores(conf: np.ndarray) -> dict:
 def for_inference(model: nn.Module) -> nn.Module:
     """`model` (in place) with its weights in the channels-last memory format, for prediction only: its
     convolutions run about 2.4 times faster on the CPU (42 -> 17 ms a 256x192 frame on 2 threads of the project's
-    AMD EPYC, 2026-12-02; quick's perception stage predicted its 1,944 frames in 71 s instead of 115 s) and gave
+    AMD EPYC; quick's perception stage predicted its 1,944 frames in 71 s instead of 115 s) and gave
     the same class as the default layout for all but 4 of their 95.6 million pixels (a tie of two classes' logits
     rounded the other way). Never during training (another layout may round the gradients otherwise)."""
     return model.to(memory_format=torch.channels_last)
@@ -417,8 +455,8 @@ def train(spec, train_frames, val_frames, seed: int = 0, progress: bool = True,
         sc = evaluate_cached(model, xv, yv)
         return {"val_pixel_accuracy": sc["pixel_accuracy"], "val_miou": sc["miou"]}, sc["miou"]
 
-    model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history, progress,
-                max_steps, step_callback, resume, on_epoch)
+    model = fit(model, spec, len(x), batch_loss, validate if xv is not None else None, gen, history,
+                FitOptions(progress, max_steps, step_callback, resume, on_epoch))
     return model, history
 
 

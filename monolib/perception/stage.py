@@ -66,9 +66,9 @@ def model_key(study: Study, name: str, dataset_key: Optional[str] = None) -> str
     spec, task = _spec(study, name)
     shipped = checkpoint = None
     if spec.weights:  # the shipped file's identity (its manifest's sha256, checked when it is loaded)
-        shipped = manifests.read_manifest(resolve_path(spec.weights, study.path))["sha256"]
+        shipped = manifests.read_manifest(resolve_path(spec.weights))["sha256"]
     if spec.checkpoint:  # an outside file: its content, not its path
-        checkpoint = _file_sha256(resolve_path(spec.checkpoint, study.path))
+        checkpoint = _file_sha256(resolve_path(spec.checkpoint))
     fields = dataclasses.asdict(spec)
     for label in ("name", "role", "weights", "checkpoint"):  # names and paths: the files' content is below
         fields.pop(label, None)
@@ -254,18 +254,18 @@ def _train_or_load(study: Study, name: str, sel, progress: bool):
         return model, history, "loaded"
     t0 = time.perf_counter()
     if spec.weights:  # the project's zoo: inference only
-        model = weights.load(spec, task, spec.weights, study.path)
-        manifest = manifests.read_manifest(resolve_path(spec.weights, study.path))
+        model = weights.load(spec, task, spec.weights)
+        manifest = manifests.read_manifest(resolve_path(spec.weights))
         history = {"epochs": [], "source": str(spec.weights), "sha256": manifest["sha256"],
                    "pretrain_seconds": manifest.get("train_seconds"), "train_seconds": 0.0}
         print(f"perception: {name} from the zoo ({spec.weights}, trained {manifest.get('train_seconds')} s on "
               f"{manifest.get('device')})", flush=True)
     elif spec.checkpoint and task == "segmentation":
-        model = seg.load_model(spec, resolve_path(spec.checkpoint, study.path))
+        model = seg.load_model(spec, resolve_path(spec.checkpoint))
         history = {"epochs": [], "source": str(spec.checkpoint), "train_seconds": 0.0}
     elif spec.checkpoint:
         model = dep.build_leres(spec.backbone)
-        dep.load_adelai_checkpoint(model, resolve_path(spec.checkpoint, study.path))
+        dep.load_adelai_checkpoint(model, resolve_path(spec.checkpoint))
         scale = dep.fit_scale(model, sel.train)
         history = {"epochs": [], "source": str(spec.checkpoint), "scale": scale,
                    "train_seconds": time.perf_counter() - t0}
@@ -374,7 +374,7 @@ def check_weights(study: Study) -> None:
     for where, spec, task in study.perception_specs():
         if spec.weights:
             try:
-                manifests.check_architecture(spec, task, resolve_path(spec.weights, study.path), f"{where}.weights")
+                manifests.check_architecture(spec, task, resolve_path(spec.weights), f"{where}.weights")
             except manifests.WeightsError as exc:
                 raise StudyError(str(exc)) from None
 

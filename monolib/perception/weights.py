@@ -17,12 +17,12 @@ from monolib.perception.manifests import WeightsError, check_architecture, manif
 sha256 = io.sha256
 
 
-def load(spec, task: str, weights: str | Path, study_path: Optional[str] = None, manifest: Optional[dict] = None):
+def load(spec, task: str, weights: str | Path, manifest: Optional[dict] = None):
     """The network of `spec` with the shipped weights (float32, on `monolib.device.device()`), after checking the
     file's sha256 against its manifest (the one beside it, or `manifest`) and its architecture against the spec."""
     import torch
 
-    path = resolve_path(str(weights), study_path)
+    path = resolve_path(str(weights))
     where = f"perception model {spec.name!r} weights"
     if manifest is None:
         manifest = check_architecture(spec, task, path, where)

@@ -84,6 +84,38 @@ def _test_metrics(model, task: str, test_frames, images, batch: int = 16) -> dic
 CURVE_KEYS = {"segmentation": ("pixel_accuracy", "miou"), "depth": ("delta1", "abs_rel")}
 
 
+def _up_to_date(out: Path, name: str, key: str) -> Optional[dict]:
+    """The shipped manifest of `name` when it names this model key, holds test metrics and its weights' hash
+    matches; None when the network must be trained (again)."""
+    mpath = out / f"{name}.json"
+    old = io.load_cached(mpath, io.read_json_dict, f"manifest of {name}")
+    if old and old.get("model_key") == key and "test_metrics" in old and (out / f"{name}.pt").is_file() \
+            and sha256(out / f"{name}.pt") == old.get("sha256"):
+        print(f"zoo: {name} up to date ({mpath})", flush=True)
+        return old
+    return None
+
+
+def _ship(model, spec, task: str, out: Path, info: dict, evaluation: Study, test, images) -> dict:
+    """Export `model` in half precision into ``out/.staging/``, measure the file that ships on `evaluation`'s test
+    split, then move weights and manifest into place (weights first); the manifest."""
+    name = info["network"]
+    stage = out / STAGING
+    manifest = export(model, spec, task, stage, info)
+    shipped = load(spec, task, stage / f"{name}.pt", manifest=manifest)  # the metrics of the file that ships
+    metrics = _test_metrics(shipped, task, test, images)
+    manifest.update(test_metrics=metrics, evaluated_on={
+        "study": evaluation.name, "study_file": _relative(evaluation.path),
+        "data_key": dataset.dataset_key(evaluation), "test_frames": len(test)})
+    io.write_json(stage / f"{name}.json", manifest)
+    (stage / f"{name}.pt").replace(out / f"{name}.pt")
+    (stage / f"{name}.json").replace(out / f"{name}.json")
+    shown_m = {k: round(v, 3) for k, v in metrics.items() if k in ("pixel_accuracy", "miou", "delta1", "abs_rel")}
+    print(f"zoo: {name} written ({manifest['bytes'] / 1e6:.1f} MB, {info['train_seconds'] / 60:.1f} min of "
+          f"training), {evaluation.name} test split: {shown_m}", flush=True)
+    return manifest
+
+
 def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: bool = True,
         only: Optional[list[str]] = None) -> dict[str, dict]:
     """Train every perception network of the `zoo` study on its mini-Hypersim, evaluate the half-precision file
@@ -109,11 +141,8 @@ def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: boo
     for name in only or zoo.model_names():
         spec, task = perception._spec(zoo, name)
         key = perception.model_key(zoo, name)
-        mpath = out / f"{name}.json"
-        old = io.load_cached(mpath, io.read_json_dict, f"manifest of {name}")
-        if old and old.get("model_key") == key and "test_metrics" in old and (out / f"{name}.pt").is_file() \
-                and sha256(out / f"{name}.pt") == old.get("sha256"):
-            print(f"zoo: {name} up to date ({mpath})", flush=True)
+        old = _up_to_date(out, name, key)
+        if old is not None:
             manifests[name] = old
             continue
         if test is None:
@@ -151,20 +180,7 @@ def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: boo
                 "val_frames": len(sel.val), "epochs": len(history["epochs"]), "best_epoch": history.get("best_epoch"),
                 "train_seconds": round(train_seconds, 1), "threads": zoo.perception.threads, "curve": curve,
                 **_machine()}
-        stage = out / STAGING
-        manifest = export(model, spec, task, stage, info)
-        shipped = load(spec, task, stage / f"{name}.pt", manifest=manifest)  # the metrics of the file that ships
-        metrics = _test_metrics(shipped, task, test, images)
-        manifest.update(test_metrics=metrics, evaluated_on={
-            "study": evaluation.name, "study_file": _relative(evaluation.path),
-            "data_key": dataset.dataset_key(evaluation), "test_frames": len(test)})
-        io.write_json(stage / f"{name}.json", manifest)
-        (stage / f"{name}.pt").replace(out / f"{name}.pt")
-        (stage / f"{name}.json").replace(mpath)
-        manifests[name] = manifest
-        shown_m = {k: round(v, 3) for k, v in metrics.items() if k in ("pixel_accuracy", "miou", "delta1", "abs_rel")}
-        print(f"zoo: {name} written ({manifest['bytes'] / 1e6:.1f} MB, {train_seconds / 60:.1f} min of training), "
-              f"{evaluation.name} test split: {shown_m}", flush=True)
+        manifests[name] = _ship(model, spec, task, out, info, evaluation, test, images)
     if out == ZOO_DIR and manifests:  # the shipped zoo: its curves beside the study's results
         write_figures(shipped_manifests(zoo, out), paths.FIGURES)
     return manifests

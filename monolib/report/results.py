@@ -24,7 +24,7 @@ of one family, when the study has them). Every per-query table (``results.csv``,
 Reference numbers
 -----------------
 ``monolib/resources/paper_tables.csv`` is a transcription of the paper's published Table 1 (recall@1/5/10) and
-Table 2 (precision@2/4/6) from ``shared/docs/paper.md`` (columns ``scenario, threshold, metric, k, value, source``;
+Table 2 (precision@2/4/6) as printed in the paper (columns ``scenario, threshold, metric, k, value, source``;
 thresholds ``1, 2, 5, 10, inf``; values in percent). They are the paper's single-run numbers, not ours. Note that
 the paper's own Table 1 is not monotone in k for Scenario 4 at 5 m (recall@5 87.5 > recall@10 86.3), which is
 impossible for recall over one fixed ranking; it is transcribed as printed (`paper_tables`).

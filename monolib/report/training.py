@@ -25,7 +25,12 @@ from monolib.retrieval.model_selection import Rule, replay
 
 EARLY = 2  # a kept model from epoch 1 or 2: trained for hardly anything
 COLUMNS = ["method", "scenario", "threshold", "seeds", "epochs_run_median", "epochs_run_min", "epochs_run_max",
-           "best_epoch_median", "best_epoch_min", "best_epoch_max", "kept_early", "recall@1_mean", "recall@1_seed_sd"]
+           "best_epoch_median", "best_epoch_min", "best_epoch_max", "kept_early", "recall@1_mean", "recall@1_seed_sd",
+           "recall@1_se"]
+# What a trained encoder is held to: the seed sd of recall@1 of these methods on these scenarios, the share of a
+# method's runs kept from epoch 1 or 2, and the standard error of a cell's mean over its seeds (sd / sqrt(seeds)).
+TARGET_METHODS, TARGET_SCENARIOS = ("gcn", "ours", "layout"), ("s1", "s2")
+TARGET_SD, TARGET_EARLY, TARGET_SE = 6.0, 0.10, 3.0
 
 
 def training_cells(study_name: str, grid: Optional[Collection[str]] = None) -> pd.DataFrame:
@@ -45,7 +50,7 @@ def _summary(g: pd.DataFrame) -> tuple:
     sd = float(g["recall@1"].std(ddof=1)) if len(g) > 1 else math.nan
     return (len(g), float(g["epochs_run"].median()), int(g["epochs_run"].min()), int(g["epochs_run"].max()),
             float(g["best_epoch"].median()), int(g["best_epoch"].min()), int(g["best_epoch"].max()),
-            float((g["best_epoch"] <= EARLY).mean()), float(g["recall@1"].mean()), sd)
+            float((g["best_epoch"] <= EARLY).mean()), float(g["recall@1"].mean()), sd, sd / math.sqrt(len(g)))
 
 
 def training_table(cells: pd.DataFrame) -> pd.DataFrame:
@@ -57,12 +62,14 @@ def training_table(cells: pd.DataFrame) -> pd.DataFrame:
         rows += per
         if len(per) > 1:
             whole = list(_summary(g))
+            whole[-2] = max((r[-2] for r in per if not math.isnan(r[-2])), default=math.nan)
             whole[-1] = max((r[-1] for r in per if not math.isnan(r[-1])), default=math.nan)
             rows.append((m, sc, math.nan, *whole))
     out = pd.DataFrame(rows, columns=COLUMNS)
     order = sorted(set(out["method"]), key=natural_key)
     out["_m"] = out["method"].map({m: i for i, m in enumerate(order)})
-    out["_s"] = out["scenario"].map(natural_key)
+    scenarios = sorted(set(out["scenario"]), key=natural_key)
+    out["_s"] = out["scenario"].map({sc: i for i, sc in enumerate(scenarios)})
     return out.sort_values(["_m", "_s"], kind="mergesort").drop(columns=["_m", "_s"]).reset_index(drop=True)
 
 
@@ -79,15 +86,43 @@ def markdown(table: pd.DataFrame, study_name: str, selection: Optional[str] = No
              f"seeds; epoch 1-2: share of seeds whose kept model is from epoch 1 or 2; recall@1 on `paper`, mean and "
              f"seed standard deviation (%). Rows `all`: every threshold of the method and scenario (seed sd: the "
              f"largest)." + (f" Selection: {selection}." if selection else ""), "",
-             "| method | scenario | threshold (m) | seeds | epochs run | kept epoch | epoch 1-2 | recall@1 | seed sd |",
-             "|---|---|---|---:|---|---|---:|---:|---:|"]
+             "| method | scenario | threshold (m) | seeds | epochs run | kept epoch | epoch 1-2 | recall@1 | seed sd | "
+             "SE |", "|---|---|---|---:|---|---|---:|---:|---:|---:|"]
     for _, r in table.iterrows():
         lines.append(f"| `{r['method']}` | {r['scenario']} | {_t(r['threshold'])} | {r['seeds']} | "
                      f"{r['epochs_run_median']:g} [{r['epochs_run_min']}, {r['epochs_run_max']}] | "
                      f"{r['best_epoch_median']:g} [{r['best_epoch_min']}, {r['best_epoch_max']}] | "
                      f"{r['kept_early']:.2f} | {r['recall@1_mean']:.1f} | "
-                     + ("–" if math.isnan(r['recall@1_seed_sd']) else f"{r['recall@1_seed_sd']:.1f}") + " |")
-    return "\n".join(lines) + "\n"
+                     + " | ".join("–" if math.isnan(r[k]) else f"{r[k]:.1f}" for k in ("recall@1_seed_sd", "recall@1_se"))
+                     + " |")
+    return "\n".join(lines + [""] + checks(table)) + "\n"
+
+
+def checks(table: pd.DataFrame) -> list[str]:
+    """The targets a trained encoder is held to, each with what this study measured: the seed sd of
+    `TARGET_METHODS` on `TARGET_SCENARIOS` (at most `TARGET_SD`), the share of each method's runs kept from epoch 1
+    or 2 (at most `TARGET_EARLY`), and each cell mean's standard error (at most `TARGET_SE`)."""
+    cells = table[table["threshold"].notna()]
+    target = cells[cells["method"].isin(TARGET_METHODS) & cells["scenario"].isin(TARGET_SCENARIOS)]
+    over = target[target["recall@1_seed_sd"] > TARGET_SD]
+    lines = [f"**Targets.** Seed sd of recall@1 at most {TARGET_SD:g} in every cell of "
+             + ", ".join(f"`{m}`" for m in TARGET_METHODS) + " on " + " and ".join(TARGET_SCENARIOS) + ": "
+             + (f"{len(target) - len(over)} of {len(target)} cells" if len(target) else "no such cell")
+             + ("" if over.empty else " (over: " + ", ".join(
+                 f"`{r['method']}` {r['scenario']} {_t(r['threshold'])} m {r['recall@1_seed_sd']:.1f}"
+                 for _, r in over.iterrows()) + ")") + "."]
+    early = []
+    for m, g in cells.groupby("method", sort=False):
+        share = float((g["kept_early"] * g["seeds"]).sum() / g["seeds"].sum())
+        early.append(f"`{m}` {share:.2f}" + ("" if share <= TARGET_EARLY else " (over)"))
+    lines.append(f"Share of runs whose kept model is from epoch 1 or 2 (at most {TARGET_EARLY:.2f}): "
+                 + ", ".join(early) + ".")
+    se = cells["recall@1_se"].dropna()
+    worst = cells.loc[se.idxmax()] if len(se) else None
+    lines.append(f"Standard error of a cell's mean over its seeds at most {TARGET_SE:g}: {int((se <= TARGET_SE).sum())} "
+                 f"of {len(se)} cells" + ("" if worst is None else f" (largest: `{worst['method']}` {worst['scenario']} "
+                                          f"{_t(worst['threshold'])} m, {worst['recall@1_se']:.1f})") + ".")
+    return lines
 
 
 CURVE_RUNS = (("gcn", 0.0, 0), ("gcn", 1.0, 0), ("gcn", 1.0, 1), ("gcn", 5.0, 0), ("ours", 0.0, 0),

@@ -284,7 +284,7 @@ def prepare(study: Study | str, scenarios: list[str] | None = None, cells: bool 
     if not isinstance(study, Study):
         study = load_study(study)
     keep_freed_memory()
-    with locks.study_lock(study.dir, study.data_dir):  # the study's lock: held already inside a run's own cells
+    with locks.of_study(study):  # the study's lock: held already inside a run's own cells
         stages(study, None if cells else scenarios, progress=progress)  # the grid needs every scenario
         if cells:
             run_grid(study, progress=progress, in_process=True)
@@ -373,7 +373,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True, scheduler:
     """All stages of a study, each skipped when its results exist. Returns timings per stage. `scheduler`: the
     address (or scheduler file) of a Dask scheduler whose workers run the cells (`monolib.study.cluster`). Holds the
     study's lock (`monolib.locks`): a second run of the same study waits for this one."""
-    with locks.study_lock(study.dir, study.data_dir):
+    with locks.of_study(study):
         return _run(study, jobs, progress, scheduler)
 
 

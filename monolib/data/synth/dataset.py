@@ -182,7 +182,7 @@ def _restore(final: Path, key: dict) -> Optional[dict]:
 
 def _finished(final: Path, key: dict) -> Optional[dict]:
     """The info of a setting rendered with `key` and still whole (every file its marker lists, at the size it was
-    written), else None. A render whose files were damaged since (truncated, deleted) is named on stdout, removed
+    written), else None. A render whose files were damaged afterwards (truncated, deleted) is named on stdout, removed
     and so rendered again; a marker without a file list (written before the check existed) is trusted."""
     marker = final / "_detail" / "monolib_synth_setting.json"
     if not marker.is_file():
