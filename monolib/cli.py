@@ -14,12 +14,10 @@ from monolib.data import synth
 from monolib.io import CacheUnreadable, DataFileError
 from monolib.params import StudyError, load_study
 
-# Each command imports its stage in its own branch ("# deferred: torch"): --help and a bad argument answer at once.
+# Each handler imports its stage itself (deferred: torch), so that --help and a bad argument answer at once.
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="monolib", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
+def _study_parsers(sub) -> None:
     p = sub.add_parser("study", help="run every stage of a study (dataset, perception, graphs, cells, report)")
     p.add_argument("study", help="a study name from params/ (smoke, quick, paper) or a YAML path")
     p.add_argument("--jobs", type=int, default=None, help="parallel papermill workers (default: the study's jobs)")
@@ -45,6 +43,9 @@ def main(argv: list[str] | None = None) -> int:
                                                           "shipped manifests")
     p = sub.add_parser("fidelity", help="compare a study's ground-truth scene graphs with real Hypersim (fidelity.md)")
     p.add_argument("study")
+
+
+def _localize_parsers(sub) -> None:
     p = sub.add_parser("index", help="store the embeddings of a study's test frames as a localization database")
     p.add_argument("study")
     p.add_argument("--out", required=True, help="database folder")
@@ -58,6 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--k", type=int, default=None, help="nearest settings to list: 1 to the database's number of "
                    "settings (outside that range: an error, not a clamp; default 5, or all of a smaller database)")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+
+def _bench_parser(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: rendering, per-frame stages, graph construction, kNN")
     p.add_argument("--width", type=int, default=256)
     p.add_argument("--height", type=int, default=192)
@@ -76,115 +80,149 @@ def main(argv: list[str] | None = None) -> int:
                    "encoders compared on the training split of --study (figures/selection.md; minutes)")
     p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
                    "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
-    args = parser.parse_args(argv)
-    from monolib.device import keep_freed_memory  # deferred: torch
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="monolib", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    _study_parsers(sub)
+    _localize_parsers(sub)
+    _bench_parser(sub)
+    return parser
+
+
+def _study(args) -> int:
+    from monolib.study import runner
+
+    t0 = time.perf_counter()
+    if args.cold_kernels:
+        import os
+
+        os.environ["MONOLIB_KERNELS"] = "cold"
+    times = runner.run(load_study(args.study), jobs=args.jobs, scheduler=args.scheduler)
+    print("stage seconds: " + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in times.items())
+          + f"; total {time.perf_counter() - t0:.0f}")
+    return 0
+
+
+def _synth(args) -> int:
+    synth.render_dataset(load_study(args.study), Path(args.out))
+    return 0
+
+
+def _perception(args) -> int:
+    from monolib.perception import stage as perception
+
+    spec = load_study(args.study)
+    print(perception.run(spec).to_string(index=False))
+    perception.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
+    print(f"figures: {paths.figures_dir(spec.name)}")
+    return 0
+
+
+def _zoo(args) -> int:
+    from monolib.perception import zoo
+
+    # the evaluation study gives its test split only: its own zoo weights need not exist yet
+    evaluation = load_study(args.eval, check_files=False)
+    if args.figures:
+        zoo.write_figures(zoo.shipped_manifests(load_study(args.study), args.out), paths.FIGURES)
+        print(f"written: {paths.FIGURES / 'zoo.md'} and zoo_curve.png")
+        return 0
+    if args.pilot:
+        print(zoo.pilot(load_study(args.study), evaluation, paths.FIGURES, only=args.only).to_string(index=False))
+        return 0
+    done = zoo.run(load_study(args.study), evaluation, Path(args.out) if args.out else None, only=args.only)
+    for name, m in done.items():
+        print(f"{name}: {m['file']} {m['bytes'] / 1e6:.1f} MB sha256 {m['sha256'][:12]} "
+              f"test {json.dumps({k: round(v, 4) for k, v in m['test_metrics'].items() if isinstance(v, float)})}")
+    return 0
+
+
+def _fidelity(args) -> int:
+    from monolib.graphs import fidelity
+
+    spec = load_study(args.study)
+    _, table = fidelity.write(spec, fidelity.study_statistics(spec))
+    print(table.read_text(), end="")
+    print(f"written: {table} and fidelity.csv")
+    return 0
+
+
+def _index(args) -> int:
+    from monolib import localize
+
+    print(f"database: {localize.build_index(load_study(args.study), args.out, args.method)}")
+    return 0
+
+
+def _localize(args) -> int:
+    from monolib import localize
+
+    results = localize.localize(args.images, args.db, args.k)
+    print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
+    return 0
+
+
+def _bench(args) -> int:
+    from monolib import bench
+
+    if args.render_vs:
+        bench.render_side_by_side(args.render_vs, args.study, args.out)
+    elif args.imagenet_choices:
+        bench.imagenet_choices(args.study, out=args.out)
+    elif args.localizers:
+        bench.localizer_costs(args.study, out=args.out)
+    elif args.allocator:
+        bench.allocator_side_by_side(args.study, out=args.out)
+    elif args.selection:
+        from monolib.retrieval import model_selection
+
+        study = load_study(args.study)
+        print(model_selection.write(study, paths.figures_dir(study.name))["md"])
+    elif args.grid:
+        from monolib.study import scaling
+
+        scaling.run(out=args.out)
+    else:
+        bench.run(args.width, args.height, args.study, args.out)
+    return 0
+
+
+HANDLERS = {"study": _study, "synth": _synth, "perception": _perception, "zoo": _zoo, "fidelity": _fidelity,
+            "index": _index, "localize": _localize, "bench": _bench}
+
+
+def _setup() -> None:
+    from monolib.device import keep_freed_memory
 
     keep_freed_memory()  # (the allocator: freed tensors reused, not mapped again by the kernel each step)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     for noisy in ("papermill", "traitlets", "nbclient", "distributed"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Parse `argv`, run its command's handler; a bad study, input file or cache is one line on stderr (exit 2), a
+    failed notebook cell names its notebook (exit 1)."""
+    args = build_parser().parse_args(argv)
+    _setup()
     try:
-        if args.command == "study":
-            from monolib.study import runner  # deferred: torch
-
-            t0 = time.perf_counter()
-            if args.cold_kernels:
-                import os
-
-                os.environ["MONOLIB_KERNELS"] = "cold"
-            times = runner.run(load_study(args.study), jobs=args.jobs, scheduler=args.scheduler)
-            print("stage seconds: " + ", ".join(f"{k[:-2]} {v:.0f}" for k, v in times.items())
-                  + f"; total {time.perf_counter() - t0:.0f}")
-        elif args.command == "synth":
-            synth.render_dataset(load_study(args.study), Path(args.out))
-        elif args.command == "perception":
-            from monolib.perception import stage as perception  # deferred: torch
-
-            spec = load_study(args.study)
-            print(perception.run(spec).to_string(index=False))
-            perception.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
-            print(f"figures: {paths.figures_dir(spec.name)}")
-        elif args.command == "zoo":
-            from monolib.perception import zoo  # deferred: torch
-
-            # the evaluation study gives its test split only: its own zoo weights need not exist yet
-            evaluation = load_study(args.eval, check_files=False)
-            if args.figures:
-                zoo.write_figures(zoo.shipped_manifests(load_study(args.study), args.out), paths.FIGURES)
-                print(f"written: {paths.FIGURES / 'zoo.md'} and zoo_curve.png")
-                return 0
-            if args.pilot:
-                print(zoo.pilot(load_study(args.study), evaluation, paths.FIGURES, only=args.only).to_string(index=False))
-                return 0
-            done = zoo.run(load_study(args.study), evaluation, Path(args.out) if args.out else None,
-                           only=args.only)
-            for name, m in done.items():
-                print(f"{name}: {m['file']} {m['bytes'] / 1e6:.1f} MB sha256 {m['sha256'][:12]} "
-                      f"test {json.dumps({k: round(v, 4) for k, v in m['test_metrics'].items() if isinstance(v, float)})}")
-        elif args.command == "fidelity":
-            from monolib.graphs import fidelity  # deferred: torch
-
-            spec = load_study(args.study)
-            _, table = fidelity.write(spec, fidelity.study_statistics(spec))
-            print(table.read_text(), end="")
-            print(f"written: {table} and fidelity.csv")
-        elif args.command == "index":
-            from monolib import localize  # deferred: torch
-
-            out = localize.build_index(load_study(args.study), args.out, args.method)
-            print(f"database: {out}")
-        elif args.command == "localize":
-            from monolib import localize  # deferred: torch
-
-            results = localize.localize(args.images, args.db, args.k)
-            print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
-        elif args.command == "bench":
-            if args.render_vs:
-                from monolib import bench  # deferred: torch
-
-                bench.render_side_by_side(args.render_vs, args.study, args.out)
-            elif args.imagenet_choices:
-                from monolib import bench  # deferred: torch
-
-                bench.imagenet_choices(args.study, out=args.out)
-            elif args.localizers:
-                from monolib import bench  # deferred: torch
-
-                bench.localizer_costs(args.study, out=args.out)
-            elif args.allocator:
-                from monolib import bench  # deferred: torch
-
-                bench.allocator_side_by_side(args.study, out=args.out)
-            elif args.selection:
-                from monolib import paths
-                from monolib.retrieval import model_selection  # deferred: torch
-
-                study = load_study(args.study)
-                print(model_selection.write(study, paths.figures_dir(study.name))["md"])
-            elif args.grid:
-                from monolib.study import scaling  # deferred: torch
-
-                scaling.run(out=args.out)
-            else:
-                from monolib import bench  # deferred: torch
-
-                bench.run(args.width, args.height, args.study, args.out)
+        return HANDLERS[args.command](args)
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:
-        from monolib.localize import LocalizeError  # deferred: torch
+        from monolib.localize import LocalizeError
+        from monolib.study.runner import NotebookFailed
 
         if isinstance(exc, (LocalizeError, DataFileError, CacheUnreadable)):
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        from monolib.study.runner import NotebookFailed  # deferred: torch
-
         if isinstance(exc, NotebookFailed):  # the notebook's cell and path say it all; the runner's stack does not
             print(f"error: {exc}", file=sys.stderr)
             return 1
         raise
-    return 0
 
 
 if __name__ == "__main__":
