@@ -14,7 +14,7 @@ from monolib.data import synth
 from monolib.io import CacheUnreadable, DataFileError
 from monolib.params import StudyError, load_study
 
-# Each handler imports its stage itself (deferred: torch), so that --help and a bad argument answer at once.
+# Each handler imports its stage itself ("# deferred: torch"), so that --help and a bad argument answer at once.
 
 
 def _study_parsers(sub) -> None:
@@ -92,7 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _study(args) -> int:
-    from monolib.study import runner
+    from monolib.study import runner  # deferred: torch
 
     t0 = time.perf_counter()
     if args.cold_kernels:
@@ -111,7 +111,7 @@ def _synth(args) -> int:
 
 
 def _perception(args) -> int:
-    from monolib.perception import stage as perception
+    from monolib.perception import stage as perception  # deferred: torch
 
     spec = load_study(args.study)
     print(perception.run(spec).to_string(index=False))
@@ -121,7 +121,7 @@ def _perception(args) -> int:
 
 
 def _zoo(args) -> int:
-    from monolib.perception import zoo
+    from monolib.perception import zoo  # deferred: torch
 
     # the evaluation study gives its test split only: its own zoo weights need not exist yet
     evaluation = load_study(args.eval, check_files=False)
@@ -140,7 +140,7 @@ def _zoo(args) -> int:
 
 
 def _fidelity(args) -> int:
-    from monolib.graphs import fidelity
+    from monolib.graphs import fidelity  # deferred: torch
 
     spec = load_study(args.study)
     _, table = fidelity.write(spec, fidelity.study_statistics(spec))
@@ -150,14 +150,14 @@ def _fidelity(args) -> int:
 
 
 def _index(args) -> int:
-    from monolib import localize
+    from monolib import localize  # deferred: torch
 
     print(f"database: {localize.build_index(load_study(args.study), args.out, args.method)}")
     return 0
 
 
 def _localize(args) -> int:
-    from monolib import localize
+    from monolib import localize  # deferred: torch
 
     results = localize.localize(args.images, args.db, args.k)
     print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
@@ -165,7 +165,7 @@ def _localize(args) -> int:
 
 
 def _bench(args) -> int:
-    from monolib import bench
+    from monolib import bench  # deferred: torch
 
     if args.render_vs:
         bench.render_side_by_side(args.render_vs, args.study, args.out)
@@ -176,12 +176,12 @@ def _bench(args) -> int:
     elif args.allocator:
         bench.allocator_side_by_side(args.study, out=args.out)
     elif args.selection:
-        from monolib.retrieval import model_selection
+        from monolib.retrieval import model_selection  # deferred: torch
 
         study = load_study(args.study)
         print(model_selection.write(study, paths.figures_dir(study.name))["md"])
     elif args.grid:
-        from monolib.study import scaling
+        from monolib.study import scaling  # deferred: torch
 
         scaling.run(out=args.out)
     else:
@@ -194,7 +194,7 @@ HANDLERS = {"study": _study, "synth": _synth, "perception": _perception, "zoo": 
 
 
 def _setup() -> None:
-    from monolib.device import keep_freed_memory
+    from monolib.device import keep_freed_memory  # deferred: torch
 
     keep_freed_memory()  # (the allocator: freed tensors reused, not mapped again by the kernel each step)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
@@ -213,8 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except Exception as exc:
-        from monolib.localize import LocalizeError
-        from monolib.study.runner import NotebookFailed
+        from monolib.localize import LocalizeError  # deferred: torch
+        from monolib.study.runner import NotebookFailed  # deferred: torch
 
         if isinstance(exc, (LocalizeError, DataFileError, CacheUnreadable)):
             print(f"error: {exc}", file=sys.stderr)

@@ -132,7 +132,7 @@ def published_study(tmp_path, graphs_root, **protocol):
     study.update(name="published_test", graphs_root=str(graphs_root), seeds=[0], thresholds=[1])
     study.pop("variants", None)  # one cell in all: a reader that let a bad file through fails the test in seconds
     study["protocol"].update(settings=3, frames=5, queries=3, positives=2, **protocol)
-    study["gcn"].update(epochs=1, val_settings=1)
+    study["gcn"].update(epochs=1, min_epochs=1, val_settings=1)
     p = tmp_path / "study.yaml"
     p.write_text(yaml.safe_dump(study))
     return p
@@ -172,7 +172,7 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
     study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
     study.update(name="published_test", graphs_root=str(tmp_path / "graphs"))
     study["protocol"].update(settings=3, frames=5, queries=3, positives=2)
-    study["gcn"].update(epochs=2, val_settings=1)
+    study["gcn"].update(epochs=2, min_epochs=1, val_settings=1)
     p = tmp_path / "study.yaml"
     p.write_text(yaml.safe_dump(study))
     s = load_study(p)
@@ -268,7 +268,7 @@ def test_a_release_of_three_volumes_gives_the_paper_protocol_its_16_settings(tmp
     study = yaml.safe_load((paths.PARAMS / "published.yaml").read_text())
     study.update(name="published_release", graphs_root=str(tmp_path / "graphs"), seeds=[0], thresholds=[1])
     study.pop("variants")
-    study["gcn"].update(epochs=1, val_settings=1)
+    study["gcn"].update(epochs=1, min_epochs=1, val_settings=1)
     p = tmp_path / "study.yaml"
     p.write_text(yaml.safe_dump(study))
     s = load_study(p)
