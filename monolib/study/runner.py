@@ -399,7 +399,7 @@ def _run(study: Study, jobs: int | None, progress: bool, scheduler: str | None) 
         write_run_record(study, times, out / "timings.json")
     if study.name in paths.COMMITTED_FIGURES:
         if readme.update():
-            print("README.md: result blocks updated from figures/", flush=True)
+            print("README.md, docs/: result blocks updated from figures/", flush=True)
     print(f"done: tables and figures in {out} (table1_recall.md, table2_precision.md, results.csv); "
           f"executed notebooks in {study.dir / 'notebooks'}", flush=True)
     return times
