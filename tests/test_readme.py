@@ -120,3 +120,17 @@ def test_update_rewrites_every_page(tmp_path: Path):
     for page in readme.all_pages(tmp_path):
         assert "<!-- BEGIN figures/t.md -->\n## T\n<!-- END" in page.read_text()
     assert not readme.update(readme.all_pages(tmp_path), tmp_path / "figures")
+
+
+NOTEBOOKS = sorted((paths.ROOT / "notebooks").glob("*.ipynb"))
+
+
+@pytest.mark.parametrize("notebook", NOTEBOOKS, ids=[n.name for n in NOTEBOOKS])
+def test_notebook_text_states_what_is_true_now(notebook: Path):
+    import nbformat
+
+    text = "\n".join(c.source for c in nbformat.read(notebook, as_version=4).cells if c.cell_type == "markdown")
+    rules = {**HISTORY, "a date": re.compile(r"\b20\d\d-\d\d-\d\d\b"),
+             "no pretrained weights (the zoo ships them)": re.compile(r"no pretrained weights", re.I)}
+    found = {what: m.group(0) for what, rx in rules.items() if (m := rx.search(text))}
+    assert not found, f"{notebook.name}'s text holds history: {found}"
