@@ -77,20 +77,34 @@ def test_pages_state_what_is_true_now(page: Path):
     assert not found, f"{page.name} holds history (CHANGELOG.md is its place): {found}"
 
 
+def anchors(page: Path) -> set[str]:
+    """GitHub's anchors of `page`'s headings: lower case, punctuation dropped, spaces as hyphens."""
+    lines = page.read_text().split("\n")
+    return {re.sub(r"[^\w\- ]", "", line.lstrip("#").strip().lower()).replace(" ", "-")
+            for line, level in zip(lines, readme.heading_levels(lines)) if level}
+
+
+def broken_links(page: Path) -> list[str]:
+    """The relative links of `page` whose file, or whose anchor in that file, does not exist."""
+    broken = []
+    for target in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
+        if "://" in target:
+            continue
+        file, _, anchor = target.partition("#")
+        path = page.parent / file if file else page
+        if not path.exists() or (anchor and path.suffix == ".md" and anchor not in anchors(path)):
+            broken.append(target)
+    return broken
+
+
 def test_readme_links_resolve():
-    text = (paths.ROOT / "README.md").read_text()
-    targets = {t.split("#")[0] for t in re.findall(r"\]\(([^)\s]+)\)", text) if "://" not in t}
-    missing = [t for t in sorted(targets) if not (paths.ROOT / t).exists()]
-    assert not missing, f"README links to missing files: {missing}"
+    broken = broken_links(paths.ROOT / "README.md")
+    assert not broken, f"README links to missing files or anchors: {broken}"
 
 
 def test_docs_links_resolve():
-    missing = []
-    for page in PAGES[1:]:
-        for t in re.findall(r"\]\(([^)\s]+)\)", page.read_text()):
-            if "://" not in t and not t.startswith("#") and not (page.parent / t.split("#")[0]).exists():
-                missing.append(f"{page.name}: {t}")
-    assert not missing, missing
+    broken = {page.name: b for page in PAGES[1:] if (b := broken_links(page))}
+    assert not broken, broken
 
 
 def test_block_headings_sit_below_their_section(tmp_path: Path):
