@@ -356,7 +356,7 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
 
 
 def write_run_record(study: Study, times: dict, path: Path) -> None:
-    """How long each stage of this run took, and on what machine (the README quotes it)."""
+    """How long each stage of this run took, and on what machine (docs/benchmarks.md shows it)."""
     import platform
 
     import torch
