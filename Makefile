@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install study ablations test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
+.PHONY: install readme study ablations test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
 
 install: $(STAMP)
 
@@ -28,6 +28,10 @@ $(STAMP): pyproject.toml
 
 study: install
 	$(VENV)/bin/monolib study $(STUDY)
+
+# the result blocks of README.md and docs/*.md rewritten from figures/ (make study does it at its end)
+readme: install
+	$(PY) -c "from monolib.report import readme; readme.update()"
 
 # beyond the paper on the quick study's data (run `make study` first): encoder ablation, ours, depth scale
 ablations: install

@@ -254,7 +254,7 @@ def perception_fps(study_name: str = "quick", sizes=((256, 192), (1024, 768)), f
 
 
 def run(width: int = 256, height: int = 192, study: str = "quick", out: str | None = None) -> dict:
-    """Print every benchmark; with `out`, also write them as JSON (the README quotes `figures/bench.json`)."""
+    """Print every benchmark; with `out`, also write them as JSON (docs/benchmarks.md shows `figures/bench.json`)."""
     import os
 
     print(f"machine: {platform.machine()} {platform.processor()}, {os.cpu_count()} cpus, "
@@ -411,7 +411,7 @@ def allocator_side_by_side(study_name: str = "quick", method: str = "imagenet_tr
 
 
 def allocator_table(record: dict) -> str:
-    """The README's table of `allocator_side_by_side`'s record."""
+    """The table of `allocator_side_by_side`'s record (docs/benchmarks.md)."""
     lines = [f"**The allocator** (`make bench-allocator`: one `{record['method']}` cell of `{record['study']}`, seed "
              f"{record['seed']}, in a new process each, {record['torch_threads']} torch thread(s), {record['machine']}, "
              f"{record['cpus']} cpus, {record['date']}). The same files, bit for bit "
@@ -425,7 +425,7 @@ def allocator_table(record: dict) -> str:
 
 
 def _written(record: dict, out: str | None, table) -> dict:
-    """`record`, written to `out` (JSON) and beside it as the Markdown `table(record)` (the README's block)."""
+    """`record`, written to `out` (JSON) and beside it as the Markdown `table(record)` (docs/benchmarks.md)."""
     if out:
         write_json(out, record)
         io.write_text(Path(out).with_suffix(".md"), table(record))
@@ -498,7 +498,7 @@ def localizer_costs(study_name: str = "quick", queries: int = 40, out: str | Non
 
 
 def localizer_table(record: dict) -> str:
-    """The README's table of `localizer_costs`' record: one row per method."""
+    """The table of `localizer_costs`' record (docs/benchmarks.md): one row per method."""
     lines = [f"**What a localizer costs** (`make bench-localizers`, study `{record['study']}`: {record['queries']} query "
              f"images of its test split, {record['torch_threads']} torch thread(s), {record['device']}, "
              f"{record['machine']}, {record['cpus']} cpus, {record['date']}). Database: the method's embedding of each "

@@ -38,7 +38,7 @@ def frame_grid(frames, columns: tuple[str, ...] = ("rgb", "depth", "semantic"), 
 
 
 def rgb_mosaic(frames, columns: int = 6, size: float = 1.6):
-    """A grid of RGB frames (for the README)."""
+    """A grid of RGB frames (for docs/data.md)."""
     rows = int(np.ceil(len(frames) / columns))
     fig, axes = plt.subplots(rows, columns, figsize=(columns * size * 1.33, rows * size), squeeze=False)
     for ax in axes.ravel():
@@ -64,7 +64,7 @@ def training_curves(folder: str | Path):
 
 
 def save_dataset_mosaic(study, path, ds=None) -> None:
-    """`frames.png`: one test frame of every test setting of a study (the README's grid of rooms)."""
+    """`frames.png`: one test frame of every test setting of a study (the grid of rooms of docs/data.md)."""
     ds = ds or dataset.open_dataset(study)
     sel = selection.select_frames(study, ds, study.gcn.val_settings)
     per = study.protocol.frames

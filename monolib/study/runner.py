@@ -356,7 +356,7 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
 
 
 def write_run_record(study: Study, times: dict, path: Path) -> None:
-    """How long each stage of this run took, and on what machine (the README quotes it)."""
+    """How long each stage of this run took, and on what machine (docs/benchmarks.md shows it)."""
     import platform
 
     import torch
@@ -399,7 +399,7 @@ def _run(study: Study, jobs: int | None, progress: bool, scheduler: str | None) 
         write_run_record(study, times, out / "timings.json")
     if study.name in paths.COMMITTED_FIGURES:
         if readme.update():
-            print("README.md: result blocks updated from figures/", flush=True)
+            print("README.md, docs/: result blocks updated from figures/", flush=True)
     print(f"done: tables and figures in {out} (table1_recall.md, table2_precision.md, results.csv); "
           f"executed notebooks in {study.dir / 'notebooks'}", flush=True)
     return times

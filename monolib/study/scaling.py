@@ -146,7 +146,7 @@ def project(measured: dict, paper: str = "paper", variants_from: str = "ablation
 
 
 def markdown(record: dict) -> str:
-    """The measured cells per minute and the projection, as the README shows them (`figures/scaling.md`)."""
+    """The measured cells per minute and the projection, as docs/cluster.md shows them (`figures/scaling.md`)."""
     p = record["projection"]
     lines = [f"**The {record['study']} grid on each engine** ({record['machine']}, {record['cpus']} cores, "
              f"{record['date']}; {record['threads_per_cell']} torch threads per cell; `monolib bench --grid`)", "",
@@ -178,7 +178,7 @@ def markdown(record: dict) -> str:
 
 
 def run(base: str = "smoke", out: str | None = None) -> dict:
-    """`measure` and `project`, printed; with `out`, written as JSON (the README quotes `figures/scaling.json`)."""
+    """`measure` and `project`, printed; with `out`, written as JSON (docs/cluster.md shows `figures/scaling.md`)."""
     import os
     import platform
 
