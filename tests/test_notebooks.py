@@ -196,8 +196,9 @@ def cell_number(nb: dict, cell: dict) -> int:
 def test_papermill_on_a_fresh_clone_from_another_directory(tmp_path):
     """The issue's command: papermill on ablation_cell.ipynb from another working directory, with a threshold and
     seed that no study lists, before any study has been run (empty MONOLIB_RUNS). The notebook builds what its
-    scenario needs and nothing else: the dataset, the segmentation network of s2 (not the depth networks, which
-    s2 does not use), its graphs, then the cell. (s3 and s4 add a depth network: a minute more, the same code.)"""
+    scenario needs and nothing else: for s1 (ground-truth depth and semantics) the dataset, its graphs and the cell,
+    no network. (s2-s4 add their perception networks through the same code; tests/test_perception.py and the smoke
+    study train them.)"""
     runs = tmp_path / "runs"
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
@@ -205,16 +206,17 @@ def test_papermill_on_a_fresh_clone_from_another_directory(tmp_path):
            "MPLBACKEND": "agg"}
     papermill = Path(sys.executable).with_name("papermill")
     out = subprocess.run([str(papermill), str(paths.NOTEBOOKS / "ablation_cell.ipynb"), "out.ipynb", "-p", "study",
-                          "smoke", "-p", "scenario", "s2", "-p", "threshold", "3.5", "-p", "seed", "11"],
+                          "smoke", "-p", "scenario", "s1", "-p", "threshold", "3.5", "-p", "seed", "11"],
                          cwd=elsewhere, env=env, capture_output=True, text=True, timeout=900)
     assert out.returncode == 0, (out.stdout + out.stderr)[-4000:]
-    cell = json.loads((runs / "smoke" / "cells" / "gcn" / "s2__t3.5__s11" / "cell.json").read_text())
-    assert (cell["scenario"], cell["threshold"], cell["seed"]) == ("s2", 3.5, 11)
+    cell = json.loads((runs / "smoke" / "cells" / "gcn" / "s1__t3.5__s11" / "cell.json").read_text())
+    assert (cell["scenario"], cell["threshold"], cell["seed"]) == ("s1", 3.5, 11)
     executed = load(elsewhere / "out.ipynb")
     printed = output_text(checked(executed)[0])
     assert printed.startswith("paper: recall@1") and "siblings: recall@1" in printed
     s = load_study("smoke")
+    assert (s.scenarios["s1"].depth, s.scenarios["s1"].semantic) == ("gt", "gt")
     trained = {p.parent.name.split("-")[0] for p in (runs / "smoke").rglob("models/*/model.pt")}
-    assert trained == {s.scenarios["s2"].semantic} and s.scenarios["s2"].depth == "gt", trained
+    assert trained == set(), trained
     graphs = sorted(p.name.split("-")[0] for p in (runs / "smoke").rglob("graphs/*.pt"))
-    assert graphs == ["s2"]
+    assert graphs == ["s1"]

@@ -23,6 +23,8 @@ def shipped(smoke_dataset, tmp_path_factory):
     try:
         s = load_study("smoke")
         s = dataclasses.replace(s, name="zoo_test", dataset=dataclasses.replace(s.dataset, root=str(smoke_dataset)))
+        seg = dataclasses.replace(s.perception.segmentation, epochs=1)  # the machinery, not the weights' value
+        s = dataclasses.replace(s, perception=dataclasses.replace(s.perception, segmentation=seg))
         out = tmp_path_factory.mktemp("zoo")
         manifests = zoo.run(s, s, out, progress=False, only=["deeplab", "depth_a"])
     finally:
@@ -146,6 +148,7 @@ def test_training_resumes_after_its_last_epoch_with_the_same_weights(smoke_datas
     s = dataclasses.replace(s, dataset=dataclasses.replace(s.dataset, root=str(smoke_dataset)))
     spec = dataclasses.replace(s.perception.depth[0], epochs=2)
     sel = selection.select_frames(s, dataset.open_dataset(s), spec.val_settings)
+    sel = dataclasses.replace(sel, train=sel.train[:8], val=sel.val[:4])  # resuming does not depend on the size
     whole, hist_whole = dep.train(spec, sel.train, sel.val, seed=1, progress=False)
 
     class Stop(Exception):
