@@ -1,8 +1,9 @@
 """The dataset stage writes the same files, bit for bit, whatever SIMD the CPU has.
 
 One small setting is rendered twice, each in its own interpreter: once as this machine runs, once with numpy's
-dispatched SIMD kernels (`NPY_DISABLE_CPU_FEATURES`: every dispatchable feature this CPU has beyond numpy's
-baseline) and torch's (`ATEN_CPU_CAPABILITY=default`) turned off. Every file written is compared byte for byte."""
+dispatched SIMD kernels turned off (`NPY_DISABLE_CPU_FEATURES`: every dispatchable feature this CPU has beyond
+numpy's baseline), OpenBLAS pinned to its AVX2 (Haswell) kernels (`OPENBLAS_CORETYPE`) and torch's kernels to their
+default ones (`ATEN_CPU_CAPABILITY=default`). Every file written is compared byte for byte."""
 import filecmp
 import json
 import os

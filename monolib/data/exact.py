@@ -87,28 +87,25 @@ def _poly(coeffs: list, x: np.ndarray) -> np.ndarray:
     return out
 
 
-def sin(x) -> np.ndarray:
-    """sin(x): reduced to [-pi/4, pi/4] by multiples of pi/2, then Taylor series of sin or cos (error below 1e-15
-    for |x| < 1e5, the range the renderer's textures use)."""
+def _quadrant(x) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """x = k pi/2 + r with |r| <= pi/4: (sin r, cos r, k mod 4), by Taylor series in r (error below 1e-15 for
+    |x| < 1e5, the range the renderer's textures use)."""
     x = _f64(x)
     k = np.rint(x * (2.0 / np.pi))
     r = ((x - k * _PIO2_1) - k * _PIO2_2) - k * _PIO2_3
     r2 = r * r
-    s = r * _poly(_SIN, r2)
-    c = _poly(_COS, r2)
-    q = np.mod(k, 4.0)
+    return r * _poly(_SIN, r2), _poly(_COS, r2), np.mod(k, 4.0)
+
+
+def sin(x) -> np.ndarray:
+    """sin(x) from the quadrant of x and the sine or cosine of the remainder."""
+    s, c, q = _quadrant(x)
     return np.where(q == 0, s, np.where(q == 1, c, np.where(q == 2, -s, -c)))
 
 
 def cos(x) -> np.ndarray:
-    """cos(x) = sin(x + pi/2), reduced the same way."""
-    x = _f64(x)
-    k = np.rint(x * (2.0 / np.pi))
-    r = ((x - k * _PIO2_1) - k * _PIO2_2) - k * _PIO2_3
-    r2 = r * r
-    s = r * _poly(_SIN, r2)
-    c = _poly(_COS, r2)
-    q = np.mod(k, 4.0)
+    """cos(x) from the quadrant of x and the cosine or sine of the remainder."""
+    s, c, q = _quadrant(x)
     return np.where(q == 0, c, np.where(q == 1, -s, np.where(q == 2, -c, s)))
 
 
