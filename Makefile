@@ -45,6 +45,11 @@ perception-long: install
 scratch: install
 	$(VENV)/bin/monolib perception scratch
 
+# after `make study`: the fresh figures against the committed ones (identical files, means moved against their
+# committed 95% intervals, claims of params/claims.yaml that fail); exit 1 with one line per problem
+verify: install
+	$(VENV)/bin/monolib verify $(STUDY)
+
 smoke: install
 	$(VENV)/bin/monolib study smoke
 

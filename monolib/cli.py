@@ -1,5 +1,6 @@
 """The `monolib` command: `monolib study STUDY`, `monolib synth STUDY --out DIR`, `monolib perception STUDY`,
-`monolib fidelity STUDY`, `monolib index STUDY --out DB`, `monolib localize IMAGE... --db DB`, `monolib bench`."""
+`monolib fidelity STUDY`, `monolib verify [STUDY]`, `monolib index STUDY --out DB`, `monolib localize IMAGE... --db DB`,
+`monolib bench`."""
 from __future__ import annotations
 
 import argparse
@@ -43,6 +44,11 @@ def _study_parsers(sub) -> None:
                                                           "shipped manifests")
     p = sub.add_parser("fidelity", help="compare a study's ground-truth scene graphs with real Hypersim (fidelity.md)")
     p.add_argument("study")
+    p = sub.add_parser("verify", help="compare a study's fresh figures with the committed ones: identical files, "
+                                      "means moved against their intervals, claims that fail (exit 1 on a problem)")
+    p.add_argument("study", nargs="?", default="quick", help="the study (default quick)")
+    p.add_argument("--against", default=None, metavar="DIR",
+                   help="the figures to compare with (default: the study's figures as committed at git HEAD)")
 
 
 def _localize_parsers(sub) -> None:
@@ -149,6 +155,18 @@ def _fidelity(args) -> int:
     return 0
 
 
+def _verify(args) -> int:
+    from monolib.report import verify  # deferred: torch
+
+    try:
+        verdict = verify.verify(args.study, args.against)
+    except (verify.VerifyError, verify.claims_mod.ClaimsError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print("\n".join(verdict.lines()))
+    return 0 if verdict.ok else 1
+
+
 def _index(args) -> int:
     from monolib import localize  # deferred: torch
 
@@ -190,7 +208,7 @@ def _bench(args) -> int:
 
 
 HANDLERS = {"study": _study, "synth": _synth, "perception": _perception, "zoo": _zoo, "fidelity": _fidelity,
-            "index": _index, "localize": _localize, "bench": _bench}
+            "verify": _verify, "index": _index, "localize": _localize, "bench": _bench}
 
 
 def _setup() -> None:

@@ -268,8 +268,8 @@ def test_resume_skips_finished_settings(smoke_dataset, smoke_study, tmp_path, ca
     assert split_rows(root) == split_rows(smoke_dataset)
 
 
-def test_version_5_views_reach_the_outside_and_the_next_room(smoke_dataset):
-    """Real depth (issue 26): windows show unlabelled outside geometry 10 to 80 m away and the sky (no depth); the
+def test_views_reach_the_outside_and_the_next_room(smoke_dataset):
+    """Real depth: windows show unlabelled outside geometry 10 to 80 m away and the sky (no depth); the
     cameras walk as Hypersim's (steps of at most 1.5 m across and 0.25 m up or down)."""
     far, outside, sky, total = 0, 0, 0, 0
     for s, cam, i in frames_on_disk(smoke_dataset):
@@ -288,8 +288,8 @@ def test_version_5_views_reach_the_outside_and_the_next_room(smoke_dataset):
             assert (np.abs(step[:, 2]) <= 0.25 + 1e-9).all()
 
 
-def test_version_5_light_falls_off_across_a_wall():
-    """Real light (issue 26): one wall's HDR radiance varies within a view (windows, lamps, corners), well beyond
+def test_light_falls_off_across_a_wall():
+    """Real light: one wall's HDR radiance varies within a view (windows, lamps, corners), well beyond
     the 4% of its paint's texture."""
     study = _tiny_study()
     s = synth.plan(study)[0]
@@ -307,7 +307,7 @@ def test_version_5_light_falls_off_across_a_wall():
 
 
 def test_a_damaged_render_is_rendered_again(smoke_dataset, smoke_study, tmp_path, capsys):
-    """Issue 26: a truncated depth_meters.hdf5 of a finished setting is noticed by its size, named, and the setting
+    """A truncated depth_meters.hdf5 of a finished setting is noticed by its size, named, and the setting
     rendered again to the same bytes; the other settings are kept."""
     root = tmp_path / "dataset"
     shutil.copytree(smoke_dataset, root)
@@ -359,8 +359,8 @@ def test_tilt_shift_setting_through_the_reader(smoke_dataset):
 
 def test_every_setting_of_a_large_plan_has_a_hypersim_name():
     """The zoo's mini-Hypersim has more than 100 families: their volumes wrap from ai_999 to ai_000, so every name
-    is ai_VVV_NNN (which the reader requires: until 2026-11-30 the families after the 100th were named ai_1000_001
-    and the reader skipped 124 of the zoo's 320 training settings without a word), and names stay unique."""
+    is ai_VVV_NNN (which the reader requires: it skips a folder named otherwise, such as ai_1000_001, so a
+    family's settings would be lost without a word), and names stay unique."""
     from monolib.data.hypersim import SETTING_RE
 
     zoo = params.load_study("zoo")

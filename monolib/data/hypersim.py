@@ -17,6 +17,7 @@ from typing import Optional
 
 import numpy as np
 
+from monolib.data import exact
 from monolib.io import DataFileError, read_h5
 
 SETTING_RE = re.compile(r"^ai_\d{3}_\d{3}$")
@@ -38,7 +39,7 @@ def _rays(M_cam_from_uv: tuple, height: int, width: int) -> np.ndarray:
     u = -1.0 + (2.0 * np.arange(width) + 1.0) / width
     v = 1.0 - (2.0 * np.arange(height) + 1.0) / height
     uv1 = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), axis=-1)  # (H, W, 3)
-    rays = uv1 @ np.array(M_cam_from_uv, dtype=np.float64).T
+    rays = exact.matmul(uv1, np.array(M_cam_from_uv, dtype=np.float64).T)
     rays.setflags(write=False)
     return rays
 
@@ -103,7 +104,11 @@ def camera_from_row(row: dict, name: str) -> Camera:
 # ---- tonemap (scene_generate_images_tonemap.py) ------------------------------------------------------------
 
 def tonemap(color: np.ndarray, valid: Optional[np.ndarray] = None) -> np.ndarray:
-    """Hypersim's tonemap: scale so the 90th percentile of brightness maps to 0.8 after gamma 1/2.2 -> uint8."""
+    """Hypersim's tonemap: scale so the 90th percentile of brightness maps to 0.8 after gamma 1/2.2 -> uint8.
+
+    The gamma curve is applied by its thresholds: a scaled radiance x becomes the number of levels k = 1..255 with
+    x >= ((k - 0.5) / 255) ** 2.2, which is round(255 x ** (1 / 2.2)) but computed with comparisons and `exact`
+    arithmetic only, so the same colour gives the same bytes on every CPU."""
     color = np.asarray(color, dtype=np.float32)
     gamma, percentile, target = 1.0 / 2.2, 90, 0.8
     if valid is None:
@@ -113,9 +118,17 @@ def tonemap(color: np.ndarray, valid: Optional[np.ndarray] = None) -> np.ndarray
     else:
         brightness = 0.3 * color[..., 0] + 0.59 * color[..., 1] + 0.11 * color[..., 2]
         q = np.percentile(brightness[valid], percentile)
-        scale = 0.0 if q < 1e-4 else target ** (1.0 / gamma) / q
-    out = np.clip(np.power(np.maximum(scale * color, 0.0), gamma), 0.0, 1.0)
-    return np.round(out * 255.0).astype(np.uint8)
+        scale = 0.0 if q < 1e-4 else float(exact.power(target, 1.0 / gamma)) / float(q)
+    x = np.maximum(scale * color.astype(np.float64), 0.0)
+    return np.searchsorted(_tonemap_thresholds(gamma), x, side="right").astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=4)
+def _tonemap_thresholds(gamma: float) -> np.ndarray:
+    """The 255 radiances at which `tonemap`'s output steps up one level: ((k - 0.5) / 255) ** (1 / gamma)."""
+    out = exact.power((np.arange(1, 256) - 0.5) / 255.0, 1.0 / gamma)
+    out.setflags(write=False)
+    return out
 
 
 # ---- frames ------------------------------------------------------------------------------------------------

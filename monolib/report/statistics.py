@@ -13,7 +13,7 @@ interval is the 2.5 and 97.5 percentiles over B resamples (`Bootstrap`, `interva
 
 The resample *indices* are one fixed set per study (`Bootstrap`, numpy seed 0): uniform numbers drawn once for
 [B, seed slot], [B, setting slot] and [B, seed slot, setting slot, query slot], turned into indices by
-floor(u * n). Every cell group of a study is resampled with the same numbers, and since the protocol draw
+floor(u * n). Every cell group of a study is resampled with the same numbers, and as the protocol draw
 depends only on the seed (same queries in every method, scenario and threshold of a seed), two groups resampled
 with the same numbers are paired: the difference of their resampled means is the paired bootstrap of the
 difference (`paired_difference` joins the per-query values on seed, setting and query first, so a group against

@@ -24,7 +24,7 @@ import pandas as pd
 
 from monolib import io, params, paths
 from monolib.params import PAPER, SIBLINGS
-from monolib.report import figures, results, statistics, tables, training
+from monolib.report import claims, figures, results, statistics, tables, training
 from monolib.retrieval import grid
 
 log = logging.getLogger(__name__)
@@ -80,6 +80,7 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
       ``paper`` protocol);
     - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``
       (``paper`` protocol);
+    - ``claims.{md,csv}`` when ``params/claims.yaml`` has claims for the study (`monolib.report.claims`);
     - ``projection.{md,csv}`` when a scenario of the tables has a twin in the other camera of the graph stage
       (`monolib.report.statistics.projection_table`, ``paper`` protocol); ``colour.{md,csv}`` likewise when one
       has a twin with node colours in the other space (`monolib.report.statistics.colour_table`).
@@ -93,133 +94,176 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     if not isinstance(study_name, (str, Path)):
         study, study_name = study_name, study_name.name
     study_name = str(study_name)
-    if study is None:
-        study = _load_study(study_name)
-    out = paths.figures_dir(study_name)
-    # the cells of the study's grid and nothing else: a seed, threshold or method dropped from the study file
-    # leaves its cells on disk, out of the tables (without the study file: every cell found)
-    cells = grid.names(study) if study is not None else None
-    stale = results.left_out(study_name, cells) if cells is not None else []
+    r = _Report(study_name, study if study is not None else _load_study(study_name), n_boot, method)
+    _write_results(r, scenario_labels)
+    _write_intervals(r)
+    r.written.update(claims.write(study_name, r.out, r.qv_all, r.iv_all, r.boots, n_boot=n_boot))
+    _write_tables(r, rgb_of)
+    _write_protocols(r)
+    if r.qv is None:
+        log.info("report of %s written to %s", study_name, r.out)
+        return r.written
+    _write_ablations(r)
+    _write_twins(r)
+    _write_light(r)
+    _write_depth_scale(r)
+    log.info("report of %s written to %s", study_name, r.out)
+    return r.written
+
+
+class _Report:
+    """What the parts of one report share: the study, its cells and numbers, the per-query values and intervals of
+    every protocol (``qv_all``, ``iv_all``, ``boots``), those of the ``paper`` protocol that the controlled
+    comparisons use (``qv``, ``iv``, ``boot``), the scenarios' information and the files written so far."""
+
+    def __init__(self, study_name: str, study, n_boot: int, method: str):
+        self.study_name, self.study, self.n_boot, self.method = study_name, study, n_boot, method
+        self.out = paths.figures_dir(study_name)
+        # the cells of the study's grid and nothing else: a seed, threshold or method dropped from the study file
+        # leaves its cells on disk, out of the tables (without the study file: every cell found)
+        self.cells = grid.names(study) if study is not None else None
+        self.written: dict[str, Path] = {}
+        self.numbers = self.labels = self.info = None
+        self.qv_all = self.iv_all = self.tests = self.qv = self.iv = self.boot = None
+        self.boots: dict = {}
+        self.hidden: set = set()
+
+    def write(self, key: str, name: str, text: str) -> None:
+        io.write_text(self.out / name, text)
+        self.written[key] = self.out / name
+
+
+def _write_results(r: _Report, scenario_labels: Optional[Mapping[str, str]]) -> None:
+    """``results.csv``, the training figures; the numbers and labels of the study's cells."""
+    stale = results.left_out(r.study_name, r.cells) if r.cells is not None else []
     if stale:
         log.warning("%s: %d cells outside the study's grid left out of the report (kept on disk), e.g. %s",
-                    results.cells_root(study_name), len(stale), stale[0].parent)
-    numbers = results.collect(study_name, cells)
-    labels = {**results.recorded_labels(study_name, cells), **(results.labels_of(study) if study is not None else {}),
-              **dict(scenario_labels or {})}
-    written: dict[str, Path] = {}
-    io.write_text(out / "results.csv", numbers.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
-    written["results"] = out / "results.csv"
-    written.update(training.write(study_name, out, cells, study))
+                    results.cells_root(r.study_name), len(stale), stale[0].parent)
+    r.numbers = results.collect(r.study_name, r.cells)
+    r.labels = {**results.recorded_labels(r.study_name, r.cells),
+                **(results.labels_of(r.study) if r.study is not None else {}), **dict(scenario_labels or {})}
+    r.write("results", "results.csv", r.numbers.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
+    r.written.update(training.write(r.study_name, r.out, r.cells, r.study))
+    r.info = results.scenario_info(r.study_name, r.study)
+    r.hidden = set(r.info.loc[~r.info["in_tables"].astype(bool), "scenario"])
 
+
+def _write_intervals(r: _Report) -> None:
+    """``intervals.csv`` and ``threshold_tests.csv``, each protocol resampled on its own (nothing paired across
+    them); nothing when the cells have no per-query rankings."""
     try:
-        qv_all = results.query_table(study_name, cells)
+        r.qv_all = results.query_table(r.study_name, r.cells)
     except FileNotFoundError as exc:
-        print(f"{study_name}: no per-query rankings, tables without intervals ({exc})")
-        qv_all = None
-    protos = results.protocols_in(numbers)
-    iv_all = tests = qv = iv = boot = None
-    if qv_all is not None:
-        ivs, tts, boots = [], [], {}
-        for p in results.protocols_in(qv_all):  # each protocol resampled on its own: nothing paired across them
-            qp = results.only_protocol(qv_all, p)
-            boots[p] = statistics.Bootstrap.for_queries(qp, n_boot)
-            ivs.append(statistics.intervals(qp, boots[p]))
-            tts.append(statistics.threshold_tests(qp, ivs[-1], boots[p]))
-        iv_all = results.sort_rows(pd.concat(ivs, ignore_index=True), results.SUMMARY_KEYS)
-        tests = pd.concat(tts, ignore_index=True)
-        io.write_text(out / "intervals.csv", tables.csv_text(iv_all))
-        written["intervals"] = out / "intervals.csv"
-        io.write_text(out / "threshold_tests.csv", tables.csv_text(tests))
-        written["threshold_tests"] = out / "threshold_tests.csv"
-        if PAPER in boots:  # the controlled comparisons below: the paper protocol
-            qv, iv, boot = results.only_protocol(qv_all, PAPER), results.only_protocol(iv_all, PAPER), boots[PAPER]
+        print(f"{r.study_name}: no per-query rankings, tables without intervals ({exc})")
+        return
+    ivs, tts = [], []
+    for p in results.protocols_in(r.qv_all):
+        qp = results.only_protocol(r.qv_all, p)
+        r.boots[p] = statistics.Bootstrap.for_queries(qp, r.n_boot)
+        ivs.append(statistics.intervals(qp, r.boots[p]))
+        tts.append(statistics.threshold_tests(qp, ivs[-1], r.boots[p]))
+    r.iv_all = results.sort_rows(pd.concat(ivs, ignore_index=True), results.SUMMARY_KEYS)
+    r.tests = pd.concat(tts, ignore_index=True)
+    r.write("intervals", "intervals.csv", tables.csv_text(r.iv_all))
+    r.write("threshold_tests", "threshold_tests.csv", tables.csv_text(r.tests))
+    if PAPER in r.boots:  # the controlled comparisons: the paper protocol
+        r.qv, r.iv = results.only_protocol(r.qv_all, PAPER), results.only_protocol(r.iv_all, PAPER)
+        r.boot = r.boots[PAPER]
 
-    info = results.scenario_info(study_name, study)
-    hidden = set(info.loc[~info["in_tables"].astype(bool), "scenario"])
-    in_tables = numbers[~numbers["scenario"].isin(hidden)]
+
+def _write_tables(r: _Report, rgb_of: Optional[figures.RgbOf]) -> None:
+    """Table 1 and 2 of every protocol, ``recall_vs_threshold.png`` and ``fig5_matches.png``."""
+    in_tables = r.numbers[~r.numbers["scenario"].isin(r.hidden)]
     shown = set(in_tables["scenario"])
-    cameras = tables.camera_note({str(r.scenario): str(r.projection) for r in info.itertuples()
-                                  if r.in_tables and r.scenario in shown})
-    for p in protos:
-        note = (tables.protocol_note(p, study.protocol if study is not None else None) + " " + cameras).strip()
-        written.update(tables.write_tables(in_tables, out, labels, iv_all, tests, n_boot, protocol=p, note=note))
-    written["recall_vs_threshold"] = figures.fig_recall_vs_threshold(in_tables, out / "recall_vs_threshold.png",
-                                                                     method, scenario_labels=labels, intervals=iv_all)
-    if rgb_of is not None and (in_tables["method"] == method).any():
-        written["fig5_matches"] = figures.fig_matches(study_name, rgb_of, out / "fig5_matches.png", method,
-                                                      results=in_tables, scenario_labels=labels)
-    if qv_all is not None and len(results.protocols_in(qv_all)) > 1:
-        table = statistics.protocols_table(qv_all, iv_all, hidden)
-        io.write_text(out / "protocols.csv", tables.csv_text(table))
-        io.write_text(out / "protocols.md", tables.protocols_markdown(table, labels, n_boot))
-        written["protocols_csv"], written["protocols_md"] = out / "protocols.csv", out / "protocols.md"
-        written["fig_protocols"] = figures.fig_protocols(table, out / "fig_protocols.png", n_boot=n_boot)
-        sib = table[table["protocol"] == SIBLINGS]
-        if len(sib):
-            groups = set(zip(sib["method"], sib["scenario"], sib["threshold"]))
-            top1 = results.rankings_table(study_name, cells, groups, protocol=SIBLINGS, max_rank=1)
-            conf = statistics.siblings_confusions(top1, table)
-            if len(conf):
-                io.write_text(out / "siblings_confusions.csv", tables.csv_text(conf))
-                io.write_text(out / "siblings_confusions.md", tables.confusions_markdown(conf, labels))
-                written["siblings_confusions_csv"] = out / "siblings_confusions.csv"
-                written["siblings_confusions_md"] = out / "siblings_confusions.md"
-    else:
-        print(f"{study_name}: one protocol only (protocol.siblings: 0): fig_protocols.png not drawn")
+    cameras = tables.camera_note({str(x.scenario): str(x.projection) for x in r.info.itertuples()
+                                  if x.in_tables and x.scenario in shown})
+    for p in results.protocols_in(r.numbers):
+        note = (tables.protocol_note(p, r.study.protocol if r.study is not None else None) + " " + cameras).strip()
+        r.written.update(tables.write_tables(in_tables, r.out, r.labels, r.iv_all, r.tests, r.n_boot, protocol=p,
+                                             note=note))
+    r.written["recall_vs_threshold"] = figures.fig_recall_vs_threshold(
+        in_tables, r.out / "recall_vs_threshold.png", r.method, scenario_labels=r.labels, intervals=r.iv_all)
+    if rgb_of is not None and (in_tables["method"] == r.method).any():
+        r.written["fig5_matches"] = figures.fig_matches(r.study_name, rgb_of, r.out / "fig5_matches.png", r.method,
+                                                        results=in_tables, scenario_labels=r.labels)
 
-    if qv is None:
-        log.info("report of %s written to %s", study_name, out)
-        return written
-    ablation = statistics.encoder_ablation(qv, iv, boot, study, base=method)
+
+def _write_protocols(r: _Report) -> None:
+    """``protocols.{csv,md}``, ``fig_protocols.png`` and ``siblings_confusions.{csv,md}`` when the cells have more
+    than one protocol."""
+    if r.qv_all is None or len(results.protocols_in(r.qv_all)) <= 1:
+        print(f"{r.study_name}: one protocol only (protocol.siblings: 0): fig_protocols.png not drawn")
+        return
+    table = statistics.protocols_table(r.qv_all, r.iv_all, r.hidden)
+    r.write("protocols_csv", "protocols.csv", tables.csv_text(table))
+    r.write("protocols_md", "protocols.md", tables.protocols_markdown(table, r.labels, r.n_boot))
+    r.written["fig_protocols"] = figures.fig_protocols(table, r.out / "fig_protocols.png", n_boot=r.n_boot)
+    sib = table[table["protocol"] == SIBLINGS]
+    if len(sib):
+        groups = set(zip(sib["method"], sib["scenario"], sib["threshold"]))
+        top1 = results.rankings_table(r.study_name, r.cells, groups, protocol=SIBLINGS, max_rank=1)
+        conf = statistics.siblings_confusions(top1, table)
+        if len(conf):
+            r.write("siblings_confusions_csv", "siblings_confusions.csv", tables.csv_text(conf))
+            r.write("siblings_confusions_md", "siblings_confusions.md", tables.confusions_markdown(conf, r.labels))
+
+
+def _write_ablations(r: _Report) -> None:
+    """``encoder_ablation.{md,csv}`` (paper protocol) and ``ablation_<method>.{md,csv}`` for each method whose
+    parts variants switch one at a time (every protocol)."""
+    ablation = statistics.encoder_ablation(r.qv, r.iv, r.boot, r.study, base=r.method)
     if len(ablation):
-        io.write_text(out / "encoder_ablation.md", tables.ablation_markdown(ablation, labels, method, n_boot))
-        io.write_text(out / "encoder_ablation.csv", tables.csv_text(ablation))
-        written["encoder_ablation_md"] = out / "encoder_ablation.md"
-        written["encoder_ablation_csv"] = out / "encoder_ablation.csv"
-
-    for base, parts in _ablations_of(study).items():  # a method's parts switched one at a time, both protocols
+        r.write("encoder_ablation_md", "encoder_ablation.md",
+                tables.ablation_markdown(ablation, r.labels, r.method, r.n_boot))
+        r.write("encoder_ablation_csv", "encoder_ablation.csv", tables.csv_text(ablation))
+    qv_all, iv_all = r.qv_all, r.iv_all
+    for base, parts in _ablations_of(r.study).items():
         tabs = {p: statistics.encoder_ablation(qv_all[qv_all["method"].isin([base, *parts])],
-                                               iv_all[iv_all["method"].isin([base, *parts])], boots[p], study,
+                                               iv_all[iv_all["method"].isin([base, *parts])], r.boots[p], r.study,
                                                base=base, protocol=p) for p in results.protocols_in(qv_all)}
         tabs = {p: t for p, t in tabs.items() if len(t)}
         if tabs:
-            md = "\n".join(tables.ablation_markdown(t, labels, base, n_boot, title=f"Ablation of `{base}`, protocol "
-                                                    f"`{p}`: each variant switches one of its parts.")
+            md = "\n".join(tables.ablation_markdown(t, r.labels, base, r.n_boot, title=f"Ablation of `{base}`, "
+                                                    f"protocol `{p}`: each variant switches one of its parts.")
                            for p, t in tabs.items())
-            io.write_text(out / f"ablation_{base}.md", md)
-            io.write_text(out / f"ablation_{base}.csv", tables.csv_text(pd.concat(tabs.values(), ignore_index=True)))
-            written[f"ablation_{base}_md"], written[f"ablation_{base}_csv"] = (out / f"ablation_{base}.md",
-                                                                               out / f"ablation_{base}.csv")
+            r.write(f"ablation_{base}_md", f"ablation_{base}.md", md)
+            r.write(f"ablation_{base}_csv", f"ablation_{base}.csv",
+                    tables.csv_text(pd.concat(tabs.values(), ignore_index=True)))
 
+
+def _write_twins(r: _Report) -> None:
+    """``projection.{md,csv}`` and ``colour.{md,csv}``: scenarios against their twins in the other camera or colour
+    space (paper protocol)."""
     for axis, table_of, markdown_of in (("projection", statistics.projection_table, tables.projection_markdown),
                                         ("colour", statistics.colour_table, tables.colour_markdown)):
-        twins = table_of(qv, iv, boot, info)
+        twins = table_of(r.qv, r.iv, r.boot, r.info)
         if len(twins):
-            io.write_text(out / f"{axis}.md", markdown_of(twins, labels, n_boot))
-            io.write_text(out / f"{axis}.csv", tables.csv_text(twins))
-            written[f"{axis}_md"], written[f"{axis}_csv"] = out / f"{axis}.md", out / f"{axis}.csv"
+            r.write(f"{axis}_md", f"{axis}.md", markdown_of(twins, r.labels, r.n_boot))
+            r.write(f"{axis}_csv", f"{axis}.csv", tables.csv_text(twins))
 
-    dim_of = results.dim_settings(study_name, study)
+
+def _write_light(r: _Report) -> None:
+    """``light.csv`` and ``recall_by_light.png`` when the dataset records dim settings among the queries."""
+    dim_of = results.dim_settings(r.study_name, r.study)
     if dim_of is None:
-        print(f"{study_name}: no monolib_synth.json with dim settings: recall_by_light.png not drawn")
-    elif not any(dim_of.get(s, False) for s in qv["setting"].unique()):
-        print(f"{study_name}: no dim test setting among the queries: recall_by_light.png not drawn")
+        print(f"{r.study_name}: no monolib_synth.json with dim settings: recall_by_light.png not drawn")
+    elif not any(dim_of.get(s, False) for s in r.qv["setting"].unique()):
+        print(f"{r.study_name}: no dim test setting among the queries: recall_by_light.png not drawn")
     else:
-        shown = [sc for sc in qv["scenario"].unique() if sc not in hidden]
-        light = statistics.light_table(qv, iv, boot, dim_of, shown, method)
-        io.write_text(out / "light.csv", tables.csv_text(light))
-        written["light"] = out / "light.csv"
-        written["recall_by_light"] = figures.fig_recall_by_light(light, out / "recall_by_light.png", method,
-                                                                 n_boot=n_boot)
+        shown = [sc for sc in r.qv["scenario"].unique() if sc not in r.hidden]
+        light = statistics.light_table(r.qv, r.iv, r.boot, dim_of, shown, r.method)
+        r.write("light", "light.csv", tables.csv_text(light))
+        r.written["recall_by_light"] = figures.fig_recall_by_light(light, r.out / "recall_by_light.png", r.method,
+                                                                   n_boot=r.n_boot)
 
-    depth = statistics.depth_scale_table(qv, iv, boot, info, method)
+
+def _write_depth_scale(r: _Report) -> None:
+    """``depth_scale.csv`` and ``recall_vs_depth_scale.png`` when the study has scenarios with a depth scale."""
+    depth = statistics.depth_scale_table(r.qv, r.iv, r.boot, r.info, r.method)
     if depth.empty:
-        print(f"{study_name}: no scenario with depth_scale != 1 (and {method} cells): recall_vs_depth_scale.png "
+        print(f"{r.study_name}: no scenario with depth_scale != 1 (and {r.method} cells): recall_vs_depth_scale.png "
               f"not drawn")
-    else:
-        io.write_text(out / "depth_scale.csv", tables.csv_text(depth))
-        written["depth_scale"] = out / "depth_scale.csv"
-        written["recall_vs_depth_scale"] = figures.fig_recall_vs_depth_scale(depth, out / "recall_vs_depth_scale.png",
-                                                                             n_boot=n_boot)
-    log.info("report of %s written to %s", study_name, out)
-    return written
+        return
+    r.write("depth_scale", "depth_scale.csv", tables.csv_text(depth))
+    r.written["recall_vs_depth_scale"] = figures.fig_recall_vs_depth_scale(
+        depth, r.out / "recall_vs_depth_scale.png", n_boot=r.n_boot)

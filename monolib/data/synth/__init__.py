@@ -10,16 +10,20 @@ What makes it look like Hypersim where place recognition is decided (../shared/d
 `monolib.graphs.fidelity` measures it for every study, `figures/fidelity.md`): each family has its own paints, woods,
 tiles and fabrics drawn from a wide continuous space, so walls and floors of two places differ more than one wall
 seen twice; surfaces carry clutter (vases, bottles, bowls, books, table lamps), floors carry plants, some families
-have skirting boards and pendant lamps. Since generator version 5 (issue 26) the rooms have real Hypersim's depth
-and light: rooms of 5 to 10 m a side (bathrooms 3-5 m), most with the next room behind an opening (an open-plan
-dining or kitchen area, often an L, or a room behind a doorway: `rooms._make_annex`); large windows that show the
-outside 10 to 80 m away (ground, facades, trees; a flat's street below: unlabelled geometry, the sky no depth); the
+have skirting boards and pendant lamps. The rooms have real Hypersim's depth and light: rooms of 5 to 10 m a
+side (bathrooms 3-5 m), most with the next room behind an opening (an open-plan dining or kitchen area, often an L,
+or a room behind a doorway: `rooms._make_annex`); large windows that show the outside 10 to 80 m away (ground, facades, trees; a flat's street below: unlabelled geometry, the sky no depth); the
 cameras walk as Hypersim's (`cameras.make_trajectories`: an artist's viewpoint across the room, then scored
 random-walk steps); the light is daylight through the windows (the sky as an area light at each window, the sun's
 patches), ceiling fixtures and lamps with inverse-square fall-off and shadows, corners darker and light bounced off
 the walls' paint (`render.Renderer.shade`), exposed per setting as an artist would (`cameras.setting_exposure`).
 The test split holds one setting per family (the `paper` protocol) and, for the first `test_siblings` families, a
 sibling setting (the `siblings` protocol).
+
+Every number that reaches a written file is computed with `monolib.data.exact` (products, norms, sin, exp, log in
+float64 from correctly rounded elementwise operations) and rounded once to the stored dtype, so the files are the
+same, bit for bit, whatever SIMD kernels numpy and OpenBLAS pick on the CPU (`tests/test_bitexact.py`). The data
+stage does not use torch.
 
 Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to
 the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim

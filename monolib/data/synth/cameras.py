@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 
+from monolib.data import exact
 from monolib.data.hypersim import Camera
 from monolib.data.synth.render import Renderer
 from monolib.data.synth.rooms import Layout
@@ -27,11 +28,10 @@ TILT_SHIFT_PROJ = (1.7253062268275619, 0.001113868662274642, -0.1194298328219532
 def look_rotation(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
     """R_world_from_cam for a camera at `eye` looking at `target` (x right, y up, z backward; world z up)."""
     f = target - eye
-    f = f / np.linalg.norm(f)
-    x = np.cross(f, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
+    f = exact.normalize(f)
+    x = exact.normalize(exact.cross(f, [0.0, 0.0, 1.0]))
     z = -f
-    y = np.cross(z, x)
+    y = exact.cross(z, x)
     return np.stack([x, y, z], axis=1)
 
 
@@ -55,7 +55,7 @@ PROBE_W, PROBE_H = 16, 12
 def view_score(r: Renderer, eye: np.ndarray, R: np.ndarray, probe: np.ndarray) -> float:
     """Hypersim's score of a candidate view: (share of valid pixels)^2 x (distinct objects seen), on a 16x12 probe;
     a view closer than 1 m to what it faces (a wall at arm's length) scores less."""
-    tri, t = r.cast(eye, probe @ R.T)
+    tri, t = r.cast(eye, exact.matmul(probe, R.T))
     hit = tri >= 0
     if not hit.any():
         return 0.0
@@ -78,7 +78,7 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int,
     fi, fj = np.nonzero(free)
     cells = np.c_[gx[fi], gy[fj]]
     probe = Camera.canonical(PROBE_W, PROBE_H).rays(PROBE_H, PROBE_W).reshape(-1, 3)
-    probe = probe / np.linalg.norm(probe, axis=1, keepdims=True)
+    probe = exact.normalize(probe)
     x0 = min(b[0] for b in lay.rooms)
     y0 = min(b[1] for b in lay.rooms)
     x1 = max(b[2] for b in lay.rooms)
@@ -90,7 +90,7 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int,
         return 0 <= i < len(gx) and 0 <= j < len(gy) and bool(free[i, j])
 
     def pose(eye, look):
-        reach = max(float(np.linalg.norm(look[:2] - eye[:2])), 0.5)
+        reach = max(float(exact.norm(look[:2] - eye[:2])), 0.5)
         look = look.copy()
         look[2] = eye[2] + np.clip(look[2] - eye[2], reach * math.tan(math.radians(-30)), reach * math.tan(math.radians(12)))
         return look, look_rotation(eye, look)
@@ -120,8 +120,8 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int,
                 q = look + np.r_[rng.uniform(-3.0, 3.0, 2), rng.uniform(-0.25, 0.25)]
                 q[:2] = np.clip(q[:2], [x0 + 0.2, y0 + 0.2], [x1 - 0.2, y1 - 0.2])
                 q[2] = np.clip(q[2], 0.2, lay.H - 0.2)
-                if np.linalg.norm(q[:2] - e[:2]) < 1.5:
-                    q[:2] = e[:2] + (q[:2] - e[:2]) / max(np.linalg.norm(q[:2] - e[:2]), 1e-6) * 1.5
+                if exact.norm(q[:2] - e[:2]) < 1.5:
+                    q[:2] = e[:2] + (q[:2] - e[:2]) / max(float(exact.norm(q[:2] - e[:2])), 1e-6) * 1.5
                 q, Rq = pose(e, q)
                 candidates.append((view_score(r, e, Rq, probe), e, q, Rq))
             scores = np.array([c[0] for c in candidates])
@@ -139,25 +139,25 @@ def setting_exposure(r: Renderer, scenes: list, compensation: float = 0.7, targe
     median radiance of the first view of each trajectory (a 32x24 render) brought `compensation` of the way (in log)
     to `target`, so that dark rooms stay darker than bright ones."""
     rays = Camera.canonical(32, 24).rays(24, 32).reshape(-1, 3)
-    rays = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+    rays = exact.normalize(rays)
     values = []
     for eyes, Rs, _looks in scenes:
-        d = rays @ Rs[0].T
+        d = exact.matmul(rays, Rs[0].T)
         tri, t = r.cast(eyes[0], d)
         hit = tri >= 0
         if hit.any():
             colour = r.shade(tri[hit], eyes[0] + d[hit] * t[hit, None], d[hit])
-            values.append(colour @ np.array([0.3, 0.59, 0.11]))
+            values.append(exact.matmul(colour, np.array([0.3, 0.59, 0.11])))
     if not values:
         return 1.0
     median = max(float(np.median(np.concatenate(values))), 1e-6)
-    return float(np.exp(compensation * (math.log(target) - math.log(median))))
+    return float(exact.exp(compensation * (exact.log(target) - exact.log(median))))
 
 
 def scene_exposures(rng: np.random.Generator, n: int) -> np.ndarray:
     """Exposure of each frame of one scene: one level per scene (x0.45-2.2) and a 2% flicker, steady along the
     trajectory as in Hypersim's renders."""
-    return np.exp(rng.uniform(np.log(0.45), np.log(2.2)) + rng.normal(0, 0.02, n))
+    return exact.exp(rng.uniform(exact.log(0.45), exact.log(2.2)) + rng.normal(0, 0.02, n))
 
 
 def _camera_M(s: dict, width: int, height: int) -> np.ndarray:

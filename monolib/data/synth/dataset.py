@@ -28,7 +28,7 @@ from monolib.versions import code_version
 
 
 VOLUME0 = 900  # families are volumes ai_900, ai_901, ... wrapping to ai_000 after ai_999 (3 digits, as in Hypersim)
-FORMAT_VERSION = 5  # bump when the generator changes: finished settings with another version are re-rendered
+FORMAT_VERSION = 6  # bump when the generator changes: finished settings with another version are re-rendered
 
 # Hypersim's metadata_camera_parameters.csv columns (contrib/mikeroberts3000), names only
 CAMERA_COLUMNS = (

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from monolib.data import exact
 from monolib.data.labels import ID
 
 
@@ -26,7 +27,7 @@ def _bx(cx, cy, z0, sx, sy, sz):
 
 def _cyl(cx, cy, z0, r, h, sections=14):
     a = np.linspace(0, 2 * np.pi, sections, endpoint=False)
-    ring = np.stack([cx + r * np.cos(a), cy + r * np.sin(a)], 1)
+    ring = np.stack([cx + r * exact.cos(a), cy + r * exact.sin(a)], 1)
     v = np.concatenate([np.c_[ring, np.full(sections, z0)], np.c_[ring, np.full(sections, z0 + h)],
                         [[cx, cy, z0], [cx, cy, z0 + h]]])
     f = []

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from monolib.data import exact
+
 
 N_PROP_MATERIALS = 4  # colours of a family's small props
 
@@ -24,7 +26,7 @@ class Material:
 
 
 def _hsv(h: float, s: float, v: float) -> tuple:
-    return tuple(float(c) ** 2.2 for c in colorsys.hsv_to_rgb(h % 1.0, s, v))  # sRGB-ish -> linear albedo
+    return tuple(float(exact.power(c, 2.2)) for c in colorsys.hsv_to_rgb(h % 1.0, s, v))  # sRGB-ish -> linear albedo
 
 
 def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material]:
@@ -114,7 +116,7 @@ def _hash(*xs: np.ndarray, seed: float = 0.0) -> np.ndarray:
     s = seed * 0.731 + 0.1
     for i, x in enumerate(xs):
         s = s + np.asarray(x, np.float64) * (12.9898 + 31.4159 * i)
-    return np.mod(np.sin(s) * 43758.5453, 1.0)
+    return np.mod(exact.sin(s) * 43758.5453, 1.0)
 
 
 def _wave_noise(p: np.ndarray, seed: float, freq: float) -> np.ndarray:
@@ -123,8 +125,8 @@ def _wave_noise(p: np.ndarray, seed: float, freq: float) -> np.ndarray:
     r = np.random.default_rng(int(seed * 1000) % (2 ** 31))
     for k in range(3):
         d = r.normal(size=3)
-        d /= np.linalg.norm(d)
-        out += np.sin(p @ d * freq * (1.0 + 0.7 * k) + r.uniform(0, 6.28))
+        d = exact.normalize(d)
+        out += exact.sin(exact.matmul(p, d) * freq * (1.0 + 0.7 * k) + r.uniform(0, 6.28))
     return out / 3.0
 
 
@@ -136,13 +138,14 @@ def _albedo(mat: Material, p: np.ndarray) -> np.ndarray:
     if mat.kind == PAINT:
         return base * (1.0 + 0.04 * _wave_noise(p, mat.seed, 3.0))[:, None]
     if mat.kind == WOOD:
-        t = (p[:, 1] * 0.7 + p[:, 2]) * mat.scale + 2.5 * _wave_noise(p, mat.seed, 2.0) + 4 * np.sin(p[:, 0] * 1.3)
-        g = (0.5 + 0.5 * np.sin(t)) ** 3
+        t = (p[:, 1] * 0.7 + p[:, 2]) * mat.scale + 2.5 * _wave_noise(p, mat.seed, 2.0) + 4 * exact.sin(p[:, 0] * 1.3)
+        g = 0.5 + 0.5 * exact.sin(t)
+        g = g * g * g
         plank = _hash(np.floor(p[:, 1] / 0.18), seed=mat.seed)[:, None] * 0.2 + 0.9
         g = 0.6 * g[:, None]
         return (base * (1 - g) + alt * g) * plank
     if mat.kind == FABRIC:
-        w = np.sin(p[:, 0] * mat.scale) * np.sin((p[:, 1] + p[:, 2]) * mat.scale)
+        w = exact.sin(p[:, 0] * mat.scale) * exact.sin((p[:, 1] + p[:, 2]) * mat.scale)
         return base * (0.9 + 0.06 * w + 0.06 * _wave_noise(p, mat.seed, 6.0))[:, None]
     if mat.kind == TILES:
         s = mat.scale
@@ -154,13 +157,13 @@ def _albedo(mat: Material, p: np.ndarray) -> np.ndarray:
         cu, cv = np.floor(p[:, 0] * mat.scale), np.floor(p[:, 2] * mat.scale * 0.8)
         h = _hash(cu, cv, seed=mat.seed)[:, None]
         h2 = _hash(cu + 7, cv - 3, seed=mat.seed)[:, None]
-        wave = (0.5 + 0.5 * np.sin(p[:, 0] * 9 + p[:, 2] * 5 + mat.seed))[:, None]
+        wave = (0.5 + 0.5 * exact.sin(p[:, 0] * 9 + p[:, 2] * 5 + mat.seed))[:, None]
         col = base * h + alt * (1 - h)
         return np.clip(col * (0.5 + 0.6 * wave) + 0.25 * h2 * (1 - base), 0.0, 1.0)
     if mat.kind == BOOKS:
         k = np.floor(p[:, 0] / mat.scale)
         h = np.stack([_hash(k, seed=mat.seed + j) for j in range(3)], 1)
-        return 0.05 + 0.55 * h ** 1.5
+        return 0.05 + 0.55 * h * np.sqrt(h)
     if mat.kind == STONE:
         speck = _hash(np.floor(p[:, 0] * mat.scale), np.floor(p[:, 1] * mat.scale), np.floor(p[:, 2] * mat.scale),
                       seed=mat.seed)[:, None]
@@ -168,7 +171,7 @@ def _albedo(mat: Material, p: np.ndarray) -> np.ndarray:
     if mat.kind == RUG:
         border = np.minimum(np.abs(np.mod(p[:, 0] * 2.0, 1.0) - 0.5), np.abs(np.mod(p[:, 1] * 2.0, 1.0) - 0.5))
         stripe = (border > 0.42)[:, None]
-        w = np.sin(p[:, 0] * mat.scale) * np.sin(p[:, 1] * mat.scale)
+        w = exact.sin(p[:, 0] * mat.scale) * exact.sin(p[:, 1] * mat.scale)
         return np.where(stripe, alt, base) * (0.9 + 0.08 * w)[:, None]
     if mat.kind == FACADE:  # storeys and bays of mat.scale metres, a dark window in each
         fu = np.mod((p[:, 0] + p[:, 1]) / mat.scale, 1.0)

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from monolib.data import exact
 from monolib.data.labels import ID
 from monolib.data.synth.furniture import _box, _cyl
 from monolib.data.synth.rooms import WALL_T, Family, Layout, _rot, _wall_frame, house_box
@@ -64,9 +65,9 @@ def build_mesh(fam: Family, lay: Layout, seed: int, setting_index: int) -> Scene
             instances.append((inst, sem, name))
         else:
             inst = -1
-        inv = np.linalg.inv(T)
+        inv = exact.rigid_inverse(T)
         for (v, f), mk in parts:
-            vw = v @ T[:3, :3].T + T[:3, 3]
+            vw = exact.matmul(v, T[:3, :3].T) + T[:3, 3]
             pidx = len(psem)
             V.append(vw)
             F.append(f + nv)
@@ -115,7 +116,7 @@ def _room(add_obj, rng: np.random.Generator, fam: Family, W: float, D: float, H:
         T = np.eye(4)
         T[:3, :3] = _rot(w * math.pi / 2)
         T[:2, 3] = o
-        T = T_room @ T
+        T = exact.matmul(T_room, T)
         holes = [(a, b, z0, z1) for (ww, a, b, z0, z1, k) in openings if ww == w]
         pieces = _wall_pieces(L, H, holes)
         parts = [(_box((s0, -WALL_T, z0), (s1, 0.0, z1)), wall_key[w]) for s0, s1, z0, z1 in pieces]

@@ -9,6 +9,7 @@ from typing import Optional
 
 import numpy as np
 
+from monolib.data import exact
 from monolib.data.synth.materials import _albedo
 from monolib.data.synth.mesh import SceneMesh
 from monolib.data.synth.rooms import Layout
@@ -35,7 +36,7 @@ class Renderer:
         hit = tri >= 0
         t = np.full(len(dirs), np.nan)
         n = self.normals[tri[hit]]
-        t[hit] = np.einsum("ij,ij->i", self.v0[tri[hit]] - origin, n) / np.einsum("ij,ij->i", dirs[hit], n)
+        t[hit] = exact.dot(self.v0[tri[hit]] - origin, n) / exact.dot(dirs[hit], n)
         return tri, t
 
     def visible(self, origin: np.ndarray, dirs: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -49,12 +50,12 @@ class Renderer:
         stopping `margin` short of it; `facing`: and that lie in front of a window of that inward normal): their
         indices, cosine towards the point, distance and unit direction."""
         L = point - origin[idx]
-        dist = np.linalg.norm(L, axis=1)
+        dist = exact.norm(L)
         L /= dist[:, None]
-        cos = np.einsum("ij,ij->i", n[idx], L)
+        cos = exact.dot(n[idx], L)
         lit = cos > 0
         if facing is not None:
-            lit &= -(L @ facing) > 0
+            lit &= -exact.matmul(L, facing) > 0
         k = idx[lit]
         vis = self.visible(origin[k], L[lit], dist[lit] - margin)
         return k[vis], cos[lit][vis], dist[lit][vis], L[lit][vis]
@@ -70,7 +71,7 @@ class Renderer:
         m, lay = self.mesh, self.lay
         part = m.face_part[tri]
         n = self.normals[tri]
-        flip = np.einsum("ij,ij->i", n, dirs) > 0
+        flip = exact.dot(n, dirs) > 0
         n[flip] *= -1
         albedo = np.zeros_like(pts)
         emission = np.zeros_like(pts)
@@ -79,7 +80,7 @@ class Renderer:
         for mi in np.unique(mats):
             sel = mats == mi
             inv = m.part_inv[part[sel]]
-            local = np.einsum("nij,nj->ni", inv[:, :3, :], ph[sel])
+            local = exact.dot(inv[:, :3, :], ph[sel][:, None, :])
             mat = m.materials[mi]
             albedo[sel] = _albedo(mat, local)
             emission[sel] = mat.emission
@@ -91,7 +92,7 @@ class Renderer:
         depth_in = np.full(len(pts), -np.inf)
         for x0, y0, x1, y1 in lay.rooms:
             depth_in = np.maximum(depth_in, np.minimum(np.minimum(x - x0, x1 - x), np.minimum(y - y0, y1 - y)))
-        ao = (0.45 + 0.55 * (1.0 - np.exp(-np.clip(depth_in, 0.0, None) / 0.7)))
+        ao = (0.45 + 0.55 * (1.0 - exact.exp(-np.clip(depth_in, 0.0, None) / 0.7)))
         ao *= (0.7 + 0.3 * np.clip(z / 0.5, 0, 1)) * (0.85 + 0.15 * np.clip((lay.H - z) / 0.4, 0, 1))
         light[inside] = lay.ambient * ao[inside, None]
         light[outside] = lay.sky * (0.5 + 0.5 * np.clip(n[outside, 2], 0, 1))[:, None]
@@ -99,14 +100,14 @@ class Renderer:
         idx_in = np.flatnonzero(inside)
         for lp, lrgb in lay.lights:
             k, cos, dist, _L = self._lit_from(origin, n, idx_in, lp, 0.05)
-            light[k] += lrgb * (cos / np.maximum(dist ** 2, 0.09))[:, None]
+            light[k] += lrgb * (cos / np.maximum(dist * dist, 0.09))[:, None]
         for centre, normal, area in lay.windows:
             k, cos, dist, L = self._lit_from(origin, n, idx_in, centre, 0.02, facing=normal)
-            w = cos * -(L @ normal) * area / (math.pi * np.maximum(dist ** 2, area))
+            w = cos * -exact.matmul(L, normal) * area / (math.pi * np.maximum(dist * dist, area))
             light[k] += lay.sky * w[:, None]
         if lay.sun is not None:
             sun_dir, sun_rgb = lay.sun
-            cos = n @ sun_dir
+            cos = exact.matmul(n, sun_dir)
             lit = np.flatnonzero(cos > 0)
             vis = self.visible(origin[lit], np.broadcast_to(sun_dir, (len(lit), 3)), np.full(len(lit), 500.0))
             light[lit[vis]] += sun_rgb * cos[lit[vis], None]
@@ -128,8 +129,7 @@ def render_frame(r: Renderer, rays_cam: np.ndarray, eye: np.ndarray, R: np.ndarr
                  timing: Optional[dict] = None) -> FrameOut:
     Hh, Ww = rays_cam.shape[:2]
     t0 = time.perf_counter()
-    d = rays_cam.reshape(-1, 3) @ R.T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = exact.normalize(exact.matmul(rays_cam.reshape(-1, 3), R.T))
     tri, t = r.cast(eye, d)
     t1 = time.perf_counter()
     hit = tri >= 0

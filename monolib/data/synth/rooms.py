@@ -9,6 +9,7 @@ from typing import Optional
 
 import numpy as np
 
+from monolib.data import exact
 from monolib.data.labels import ID
 from monolib.data.synth.furniture import CATALOGUE, MOUNT_Z, Item, Obj, _bx, _cyl, b_chair, b_desk, w_picture
 from monolib.data.synth.materials import N_PROP_MATERIALS, _family_materials
@@ -160,7 +161,7 @@ def annex_box(annex: dict, W: float, D: float, pad: float = 0.0) -> tuple[float,
     yaw, origin = annex_frame(annex, W, D)
     R = _rot(yaw)[:2, :2]
     L, Da = annex["a1"] - annex["a0"], annex["depth"]
-    corners = np.array([origin + R @ np.array(c) for c in ((-pad, 0), (L + pad, 0), (-pad, Da + pad), (L + pad, Da + pad))])
+    corners = np.array([origin + exact.matmul(R, np.array(c)) for c in ((-pad, 0), (L + pad, 0), (-pad, Da + pad), (L + pad, Da + pad))])
     return (float(corners[:, 0].min()), float(corners[:, 1].min()), float(corners[:, 0].max()),
             float(corners[:, 1].max()))
 
@@ -377,7 +378,7 @@ def _place_annex(draft: "_Draft", fam: Family, orng: np.random.Generator) -> Opt
     yaw, origin = annex_frame(a, draft.W, draft.D)
     R = _rot(yaw)[:2, :2]
     for it in sub.items:
-        it.x, it.y = (float(v) for v in origin + R @ np.array([it.x, it.y]))
+        it.x, it.y = (float(v) for v in origin + exact.matmul(R, np.array([it.x, it.y])))
         it.yaw += yaw
         draft.items.append(it)
     return dict(a, yaw=yaw, origin=origin, openings=sub.openings, box=annex_box(a, draft.W, draft.D), W=L, D=Da)
@@ -580,9 +581,9 @@ def _place_chairs(draft: _Draft, chair_dims: tuple) -> None:
         for lx, ly, lyaw in spots:
             if mode == "around" and rng.uniform() < 0.3:
                 continue
-            p = np.array([anchor.x, anchor.y]) + R @ np.array([lx, ly])
+            p = np.array([anchor.x, anchor.y]) + exact.matmul(R, np.array([lx, ly]))
             yaw = anchor.yaw + lyaw + rng.normal(0, 0.15)
-            p += R @ np.array([rng.normal(0, 0.05), rng.normal(0, 0.05)])
+            p += exact.matmul(R, np.array([rng.normal(0, 0.05), rng.normal(0, 0.05)]))
             fp = _footprint(p[0], p[1], yaw, cw, cd)
             if fp[0] < 0.05 or fp[1] < 0.05 or fp[2] > W - 0.05 or fp[3] > D - 0.05:
                 continue
@@ -637,7 +638,7 @@ def _place_lights(lay: Layout, draft: _Draft, fam: Family, seed: int, dim: bool)
     for it in draft.items:  # lamps: on in most evenings, in some days
         for local in it.lights:
             if rng.uniform() < (0.85 if dim else 0.45):
-                p = np.array([it.x, it.y, it.z0]) + _rot(it.yaw) @ np.asarray(local)
+                p = np.array([it.x, it.y, it.z0]) + exact.matmul(_rot(it.yaw), np.asarray(local))
                 power = rng.uniform(0.6, 1.2) * (1.6 if it.kind == "floorlamp" else 1.0)
                 lay.lights.append((p, warm * power))
                 flux += power
@@ -657,8 +658,8 @@ def _place_lights(lay: Layout, draft: _Draft, fam: Family, seed: int, dim: bool)
                 continue
             o, t, nrm, _L = _wall_frame(w, room[0], room[1])
             c2 = o + t * (s0 + 0.3 * (s1 - s0)) - nrm * (WALL_T + 0.05)  # beside the mullion
-            centre = np.r_[origin + R[:2, :2] @ c2, (z0 + z1) / 2]
-            normal = R @ np.r_[nrm, 0.0]
+            centre = np.r_[origin + exact.matmul(R[:2, :2], c2), (z0 + z1) / 2]
+            normal = exact.matmul(R, np.r_[nrm, 0.0])
             lay.windows.append((centre, normal, (s1 - s0) * (z1 - z0)))
             window_area += (s1 - s0) * (z1 - z0)
     # bounced light: a share of what the lamps and windows bring in, spread over the floor area, tinted by the walls

@@ -1,0 +1,221 @@
+"""Claims as data: each comparison the README's prose makes ("A above B", "A level with B") is an entry of
+``params/claims.yaml``, evaluated on the study's cells with the paired bootstrap the tables use, and written to
+``claims.md`` and ``claims.csv`` beside the tables (`write`, called by `monolib.report.write.write_report`).
+
+``params/claims.yaml`` holds one list of claims per study name. A claim::
+
+    - id: layout-level-with-histogram           # unique within the study
+      a: {method: layout, scenario: s1, threshold: .inf, protocol: paper}
+      b: {method: color_hist, scenario: rgb, threshold: .inf}   # protocol: paper when left out
+      metric: recall@1                           # the default
+      relation: level                            # above | below | level
+      sentence: "`layout` on ground truth ({a}) is level with the colour histogram ({b})."
+
+Both cells of a claim belong to one protocol (the bootstrap pairs queries within a protocol, never across). The
+difference is mean(a) - mean(b) with the paired bootstrap's 95 % interval (`statistics.paired_difference`, the
+protocol's `statistics.Bootstrap`); the two means and their intervals are the tables' (``intervals.csv``).
+``above`` holds when the difference's interval lies entirely above 0, ``below`` entirely below 0, ``level`` when
+it contains 0. The sentence is a template without numbers: ``{a}`` and ``{b}`` become each cell's mean with its
+interval, ``{diff}`` the difference with its interval.
+"""
+from __future__ import annotations
+
+import math
+import string
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import pandas as pd
+import yaml
+
+from monolib import io, paths
+from monolib.params import PAPER
+from monolib.report import results, statistics
+
+CLAIMS_FILE = paths.PARAMS / "claims.yaml"
+RELATIONS = ("above", "below", "level")
+CELL_KEYS = ("method", "scenario", "threshold", "protocol")
+CLAIM_KEYS = ("id", "a", "b", "metric", "relation", "sentence")
+PLACEHOLDERS = ("a", "b", "diff")
+COLUMNS = ["id", "relation", "metric", "protocol", "a_method", "a_scenario", "a_threshold", "a_mean", "a_lo", "a_hi",
+           "b_method", "b_scenario", "b_threshold", "b_mean", "b_lo", "b_hi", "diff", "diff_lo", "diff_hi", "holds",
+           "sentence"]
+
+
+class ClaimsError(ValueError):
+    """A claims file that cannot be read as claims, or a claim naming cells the study does not have."""
+
+
+@dataclass(frozen=True)
+class Cell:
+    method: str
+    scenario: str
+    threshold: float
+    protocol: str
+
+
+@dataclass(frozen=True)
+class Claim:
+    id: str
+    a: Cell
+    b: Cell
+    metric: str
+    relation: str
+    sentence: str
+
+
+def _cell(raw, where: str) -> Cell:
+    if not isinstance(raw, dict):
+        raise ClaimsError(f"{where}: expected a mapping with keys {', '.join(CELL_KEYS)}, got {raw!r}")
+    unknown = sorted(set(raw) - set(CELL_KEYS))
+    if unknown:
+        raise ClaimsError(f"{where}.{unknown[0]}: unknown key (expected {', '.join(CELL_KEYS)})")
+    for key in ("method", "scenario", "threshold"):
+        if key not in raw:
+            raise ClaimsError(f"{where}.{key}: missing")
+    try:
+        threshold = float(raw["threshold"])
+    except (TypeError, ValueError):
+        raise ClaimsError(f"{where}.threshold: expected a number in metres or .inf, got {raw['threshold']!r}") from None
+    return Cell(str(raw["method"]), str(raw["scenario"]), threshold, str(raw.get("protocol", PAPER)))
+
+
+def _claim(raw, where: str) -> Claim:
+    if not isinstance(raw, dict):
+        raise ClaimsError(f"{where}: expected a mapping with keys {', '.join(CLAIM_KEYS)}, got {raw!r}")
+    unknown = sorted(set(raw) - set(CLAIM_KEYS))
+    if unknown:
+        raise ClaimsError(f"{where}.{unknown[0]}: unknown key (expected {', '.join(CLAIM_KEYS)})")
+    for key in ("id", "a", "b", "relation", "sentence"):
+        if key not in raw:
+            raise ClaimsError(f"{where}.{key}: missing")
+    where = f"{where} ({raw['id']})"
+    a, b = _cell(raw["a"], f"{where}.a"), _cell(raw["b"], f"{where}.b")
+    if a.protocol != b.protocol:
+        raise ClaimsError(f"{where}: a and b on protocols {a.protocol!r} and {b.protocol!r}; the bootstrap pairs "
+                          f"queries within one protocol")
+    if raw["relation"] not in RELATIONS:
+        raise ClaimsError(f"{where}.relation: expected one of {', '.join(RELATIONS)}, got {raw['relation']!r}")
+    metric = str(raw.get("metric", "recall@1"))
+    name, _, k = metric.partition("@")
+    if name not in results.METRICS or not k.isdigit():
+        raise ClaimsError(f"{where}.metric: expected recall@K or precision@K, got {metric!r}")
+    sentence = str(raw["sentence"])
+    fields = {f for _, f, _, _ in string.Formatter().parse(sentence) if f is not None}
+    if fields - set(PLACEHOLDERS):
+        raise ClaimsError(f"{where}.sentence: unknown placeholder {{{sorted(fields - set(PLACEHOLDERS))[0]}}} "
+                          f"(expected {', '.join('{' + p + '}' for p in PLACEHOLDERS)})")
+    return Claim(str(raw["id"]), a, b, metric, str(raw["relation"]), sentence)
+
+
+def load(study_name: str, path: Path = CLAIMS_FILE) -> list[Claim]:
+    """The claims of `study_name` in `path` (an empty list when the study has none or the file does not exist)."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ClaimsError(f"{path}: not YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise ClaimsError(f"{path}: expected a mapping of study names to lists of claims")
+    raw = data.get(study_name) or []
+    if not isinstance(raw, list):
+        raise ClaimsError(f"{path}: {study_name}: expected a list of claims, got {type(raw).__name__}")
+    claims = [_claim(c, f"{path}: {study_name}[{i}]") for i, c in enumerate(raw)]
+    ids = [c.id for c in claims]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise ClaimsError(f"{path}: {study_name}: claim id {dup[0]!r} appears twice")
+    return claims
+
+
+def holds(relation: str, lo: float, hi: float) -> bool:
+    """Whether a difference with 95 % interval [lo, hi] satisfies `relation`."""
+    if relation == "above":
+        return lo > 0
+    if relation == "below":
+        return hi < 0
+    if relation == "level":
+        return lo <= 0 <= hi
+    raise ValueError(f"relation {relation!r}: expected one of {', '.join(RELATIONS)}")
+
+
+def _mean_of(iv: pd.DataFrame, cell: Cell, metric: str, where: str) -> tuple[float, float, float]:
+    name, _, k = metric.partition("@")
+    iv = results.with_protocol(iv)
+    r = iv[(iv["method"] == cell.method) & (iv["scenario"] == cell.scenario) & (iv["threshold"] == cell.threshold)
+           & (iv["protocol"] == cell.protocol) & (iv["metric"] == name) & (iv["k"] == int(k))]
+    if len(r) != 1:
+        raise ClaimsError(f"{where}: no {metric} of method={cell.method}, scenario={cell.scenario}, "
+                          f"threshold={cell.threshold:g}, protocol={cell.protocol} in the study's results")
+    return float(r["mean"].iloc[0]), float(r["ci_lo"].iloc[0]), float(r["ci_hi"].iloc[0])
+
+
+def evaluate(claims: list[Claim], qv: pd.DataFrame, iv: pd.DataFrame, boots: dict,
+             source: str = str(CLAIMS_FILE)) -> pd.DataFrame:
+    """One row per claim (columns `COLUMNS`): both means with the tables' intervals, the paired difference a - b
+    with its interval, and whether the relation holds. `qv`: per-query values of every protocol
+    (`results.query_table`); `iv`: their intervals; `boots`: each protocol's `statistics.Bootstrap`."""
+    rows = []
+    for c in claims:
+        where = f"{source}: claim {c.id}"
+        if c.a.protocol not in boots:
+            raise ClaimsError(f"{where}: the study's results have no protocol {c.a.protocol!r}")
+        a = _mean_of(iv, c.a, c.metric, f"{where}.a")
+        b = _mean_of(iv, c.b, c.metric, f"{where}.b")
+        d = statistics.paired_difference(
+            statistics.rows_of(qv, c.a.method, c.a.scenario, c.a.threshold, c.a.protocol),
+            statistics.rows_of(qv, c.b.method, c.b.scenario, c.b.threshold, c.b.protocol), boots[c.a.protocol],
+            [c.metric])
+        if d.empty:
+            raise ClaimsError(f"{where}: cells a and b share no query of protocol {c.a.protocol}")
+        diff, lo, hi = float(d["diff"].iloc[0]), float(d["ci_lo"].iloc[0]), float(d["ci_hi"].iloc[0])
+        rows.append((c.id, c.relation, c.metric, c.a.protocol, c.a.method, c.a.scenario, c.a.threshold, *a,
+                     c.b.method, c.b.scenario, c.b.threshold, *b, diff, lo, hi, holds(c.relation, lo, hi),
+                     c.sentence))
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def _num(mean: float, lo: float, hi: float) -> str:
+    return f"{mean:.1f} [{lo:.1f}, {hi:.1f}]"
+
+
+def markdown(table: pd.DataFrame, study_name: str, n_boot: int = statistics.N_BOOT) -> str:
+    """``claims.md``: each claim's sentence with its numbers, the difference and `holds` or `FAILS`."""
+    lines = [f"Claims of the `{study_name}` study (`params/claims.yaml`), recall or precision in %, mean [95 % "
+             f"bootstrap interval, {n_boot} resamples]; difference: the paired bootstrap of a - b on the same "
+             f"seeds, settings and queries. `above` holds when its interval lies above 0, `below` below 0, `level` "
+             f"when it contains 0.",
+             "", "| claim | sentence | difference a - b | relation | verdict |", "|---|---|---|---|---|"]
+    for r in table.itertuples(index=False):
+        sentence = r.sentence.format(a=_num(r.a_mean, r.a_lo, r.a_hi), b=_num(r.b_mean, r.b_lo, r.b_hi),
+                                     diff=_num(r.diff, r.diff_lo, r.diff_hi))
+        lines.append(f"| {r.id} | {sentence} | {_num(r.diff, r.diff_lo, r.diff_hi)} | {r.relation} | "
+                     f"{'holds' if r.holds else '**FAILS**'} |")
+    return "\n".join(lines) + "\n"
+
+
+def write(study_name: str, out: Path, qv: Optional[pd.DataFrame], iv: Optional[pd.DataFrame], boots: dict,
+          path: Path = CLAIMS_FILE, n_boot: int = statistics.N_BOOT) -> dict[str, Path]:
+    """Evaluate the claims of `study_name` and write ``claims.md`` and ``claims.csv`` into `out`; ``{}`` when the
+    study has no claims. Raises `ClaimsError` when it has claims but no per-query rankings to test them on."""
+    claims = load(study_name, path)
+    if not claims:
+        return {}
+    if qv is None or iv is None:
+        raise ClaimsError(f"{path}: {study_name} has claims but the study has no per-query rankings to test them")
+    table = evaluate(claims, qv, iv, boots, str(path))
+    io.write_text(out / "claims.csv", table.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
+    io.write_text(out / "claims.md", markdown(table, study_name, n_boot))
+    return {"claims_csv": out / "claims.csv", "claims_md": out / "claims.md"}
+
+
+def read(path: Path) -> pd.DataFrame:
+    """A written ``claims.csv`` (thresholds as floats, ``holds`` as bool)."""
+    table = pd.read_csv(path)
+    table["holds"] = table["holds"].astype(str).str.lower() == "true"
+    for col in ("a_threshold", "b_threshold"):
+        table[col] = table[col].map(lambda v: math.inf if str(v) in ("inf", "Infinity") else float(v))
+    return table

@@ -1,0 +1,89 @@
+"""The dataset stage writes the same files, bit for bit, whatever SIMD the CPU has.
+
+One small setting is rendered twice, each in its own interpreter: once as this machine runs, once with numpy's
+dispatched SIMD kernels turned off (`NPY_DISABLE_CPU_FEATURES`: every dispatchable feature this CPU has beyond
+numpy's baseline), OpenBLAS pinned to its AVX2 (Haswell) kernels (`OPENBLAS_CORETYPE`) and torch's kernels to their
+default ones (`ATEN_CPU_CAPABILITY=default`). Every file written is compared byte for byte."""
+import filecmp
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+RENDER = """
+import json, sys
+from pathlib import Path
+from types import SimpleNamespace
+from monolib.data import synth
+ds = SimpleNamespace(width=128, height=96, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
+                     frames_per_setting=3, train_frames_per_setting=3, dim_fraction=0.0, tilt_shift_settings=0,
+                     workers=1)
+synth.render_dataset(SimpleNamespace(seed=11, dataset=ds), Path(sys.argv[1]), progress=False)
+from numpy._core._multiarray_umath import __cpu_features__ as have, __cpu_dispatch__ as dispatch
+print(json.dumps([k for k in dispatch if have.get(k)]))
+"""
+
+
+def dispatched_features() -> list[str]:
+    """numpy's dispatchable CPU features that this CPU has (beyond the baseline, which cannot be turned off)."""
+    code = ("import json; from numpy._core._multiarray_umath import __cpu_features__ as h, __cpu_dispatch__ as d;"
+            "print(json.dumps([k for k in d if h.get(k)]))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)
+
+
+def render(out: Path, env: dict) -> list[str]:
+    """Render the small setting into `out` in a fresh interpreter with `env`; the numpy features it ran with."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), **env}
+    res = subprocess.run([sys.executable, "-c", RENDER, str(out)], env=env, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_dataset_is_bit_exact_without_the_cpus_simd_kernels(tmp_path):
+    features = dispatched_features()
+    if not features:
+        pytest.skip("this CPU has no numpy SIMD features beyond the baseline: nothing to turn off")
+    native = render(tmp_path / "native", {})
+    reduced = render(tmp_path / "reduced", {"NPY_DISABLE_CPU_FEATURES": " ".join(features),
+                                            "ATEN_CPU_CAPABILITY": "default",
+                                            "OPENBLAS_CORETYPE": "Haswell"})
+    assert native == features and reduced == [], (native, reduced)  # the second run really ran without them
+    a, b = tmp_path / "native", tmp_path / "reduced"
+    names = sorted(p.relative_to(a).as_posix() for p in a.rglob("*") if p.is_file())
+    assert names == sorted(p.relative_to(b).as_posix() for p in b.rglob("*") if p.is_file())
+    assert any(n.endswith(".color.hdf5") for n in names) and any(n.endswith(".tonemap.jpg") for n in names)
+    differ = [n for n in names if not filecmp.cmp(a / n, b / n, shallow=False)]
+    assert not differ, f"{len(differ)} of {len(names)} files differ, e.g. {differ[:8]}"
+
+
+def test_exact_arithmetic_agrees_with_numpy_to_the_last_bits():
+    """`monolib.data.exact` computes the same functions as numpy's kernels, to a few units in the last place."""
+    import numpy as np
+
+    from monolib.data import exact
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(-1e4, 1e4, 20000)
+    assert np.abs(exact.sin(x) - np.sin(x)).max() < 1e-14 and np.abs(exact.cos(x) - np.cos(x)).max() < 1e-14
+    y = rng.uniform(-40, 40, 20000)
+    np.testing.assert_allclose(exact.exp(y), np.exp(y), rtol=1e-14)
+    z = rng.uniform(1e-6, 100, 20000)
+    np.testing.assert_allclose(exact.log(z), np.log(z), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(exact.power(z, 1 / 2.2), z ** (1 / 2.2), rtol=1e-14)
+    assert exact.power(np.array([0.0]), 2.2)[0] == 0.0 and exact.exp(np.array([-np.inf]))[0] == 0.0
+    a, b = rng.normal(size=(7, 3)), rng.normal(size=(3, 4))
+    np.testing.assert_allclose(exact.matmul(a, b), a @ b, rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(exact.matmul(a, b[:, 0]), a @ b[:, 0], rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(exact.cross(a, a[::-1]), np.cross(a, a[::-1]), atol=1e-15)
+    np.testing.assert_allclose(exact.norm(a), np.linalg.norm(a, axis=1), rtol=1e-15)
+    T = np.eye(4)
+    T[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    T[:3, 3] = rng.normal(size=3)
+    np.testing.assert_allclose(exact.rigid_inverse(T), np.linalg.inv(T), atol=1e-14)
