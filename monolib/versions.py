@@ -25,13 +25,13 @@ STAGE_MODULES = {
                 "data.synth.dataset", "data.hypersim", "data.labels"],
     "perception": ["perception.stage", "perception.images", "perception.segmentation", "perception.depth",
                    "perception.imagenet", "perception.zoo", "perception.manifests", "perception.weights", "data.stage",
-                   "data.selection", "data.protocols", "data.hypersim", "data.labels"],
-    "graphs": ["graphs.stage", "graphs.build", "data.stage", "data.selection", "data.protocols", "data.hypersim",
+                   "data.selection", "data.folds", "data.protocols", "data.hypersim", "data.labels"],
+    "graphs": ["graphs.stage", "graphs.build", "data.stage", "data.selection", "data.folds", "data.protocols", "data.hypersim",
                "graphs.published", "methods", "data.labels"],
-    "features": ["perception.features", "perception.images", "perception.imagenet", "data.stage", "data.selection",
+    "features": ["perception.features", "perception.images", "perception.imagenet", "data.stage", "data.selection", "data.folds",
                  "data.protocols", "data.hypersim", "data.labels"],
     "cells": ["retrieval.cell", "retrieval.gcn", "retrieval.baselines", "retrieval.pretrained", "retrieval.evaluate",
-              "retrieval.metrics", "methods", "graphs.build", "data.stage", "data.selection", "data.protocols",
+              "retrieval.metrics", "methods", "graphs.build", "data.stage", "data.selection", "data.folds", "data.protocols",
               "data.hypersim", "data.labels"],
 }
 # What a stage's modules may import beyond their own list (`tests/test_cache.py` holds every import to this):

@@ -1,0 +1,157 @@
+"""Folds by volume and the subsample of training settings on published graph files written here in the release's
+format (the release is not in this repository), and the single released sample file read as it is."""
+from pathlib import Path
+
+import pytest
+import yaml
+
+from monolib import paths, versions
+from monolib.data import folds
+from monolib.data.protocols import family
+from monolib.graphs import published
+from monolib.graphs.published import PublishedGraphError
+from monolib.params import StudyError, load_study
+from monolib.retrieval.grid import grid
+from tests.published_files import layout, write_release
+
+SAMPLE = paths.ROOT.parent / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"
+VOLUMES = [1, 2, 3, 4, 5, 6]
+
+
+def study_file(tmp_path: Path, root: Path, **protocol) -> Path:
+    """A published-graphs study on `root` with a small protocol (2 test settings of 4 frames) and a tiny GCN."""
+    spec = {"name": "folds_test", "seed": 0, "graphs_root": str(root),
+            "dataset": {"source": "hypersim", "train_frames_per_setting": 4},
+            "scenarios": {"s1": {"depth": "gt", "semantic": "gt"}}, "thresholds": [1, 2], "seeds": [0],
+            "methods": ["gcn"], "gcn": {"epochs": 1, "hidden": 8, "out": 4, "layers": 1, "val_settings": 2,
+                                         "batch_size": 8},
+            "protocol": {"settings": 2, "frames": 4, "queries": 3, "positives": 1, **protocol}}
+    path = tmp_path / "folds_test.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
+
+
+@pytest.fixture
+def release(tmp_path):
+    root = tmp_path / "graphs"
+    write_release(root, layout(VOLUMES, settings=2, test_volumes=[5, 6]), cameras=2, frames=2)
+    return root
+
+
+@pytest.mark.skipif(not SAMPLE.is_file(), reason="the released sample file is in ../shared/data only")
+def test_the_released_sample_file_reads_as_it_is():
+    graphs = published.read_file(SAMPLE)
+    assert graphs and {g.setting for g in graphs} == {"ai_001_001"}
+    assert all(g.frame.startswith("ai_001_001/cam_00/") for g in graphs)
+    assert all(g.x.shape[1] == 4 and g.pair_index.shape[1] == g.pair_len.shape[0] for g in graphs)
+    assert all(bool((g.pair_index[0] < g.pair_index[1]).all()) for g in graphs)  # the release's i < j, kept
+
+
+def test_folds_never_share_a_volume_and_the_seed_decides():
+    vols = [f"ai_{v:03d}" for v in range(1, 27)]
+    dealt = folds.volume_folds(vols, 5, seed=0)
+    assert sorted(v for f in dealt for v in f) == vols  # every volume in exactly one fold
+    assert max(map(len, dealt)) - min(map(len, dealt)) <= 1
+    assert folds.volume_folds(list(reversed(vols)), 5, seed=0) == dealt  # the order of the names does not matter
+    assert folds.volume_folds(vols, 5, seed=1) != dealt
+    with pytest.raises(StudyError, match="protocol.folds: 5 folds asked, the data holds 3 volumes"):
+        folds.volume_folds(vols[:3], 5, seed=0)
+
+
+def test_each_fold_tests_on_its_volumes_and_trains_on_the_others(tmp_path, release):
+    study = load_study(study_file(tmp_path, release, split="volumes", folds=3))
+    assert [c.fold for c in grid(study)] == [0, 0, 1, 1, 2, 2]
+    tested = []
+    for fold in range(3):
+        split = published.select(study.at_fold(fold))
+        test_vols = {family(g.setting) for g in split["test"]}
+        train_vols = {family(g.setting) for g in split["train"] + split["val"]}
+        assert test_vols and not test_vols & train_vols
+        assert test_vols <= set(folds.volume_folds([f"ai_{v:03d}" for v in VOLUMES], 3, 0)[fold])
+        tested += sorted(test_vols)
+    assert len(tested) == len(set(tested))  # no volume tested twice
+    with pytest.raises(StudyError, match="fold 3"):
+        study.at_fold(3)
+
+
+def test_a_fold_with_too_few_test_settings_is_one_error_naming_the_fold(tmp_path, release):
+    study = load_study(study_file(tmp_path, release, split="volumes", folds=6, settings=3))
+    with pytest.raises(PublishedGraphError, match=r"fold 0 of 6 \(test volumes ai_0\d\d\).*needs 3 test settings"):
+        published.select(study.at_fold(0))
+
+
+def test_train_settings_is_a_seeded_subsample(tmp_path, release):
+    path = study_file(tmp_path, release)
+    spec = yaml.safe_load(path.read_text())
+    spec["dataset"]["train_settings"] = 3
+    path.write_text(yaml.safe_dump(spec))
+    study = load_study(path)
+    names = lambda s: sorted({g.setting for k in ("train", "val") for g in published.select(s)[k]})  # noqa: E731
+    picked = names(study)
+    assert len(picked) == 3 and picked == names(load_study(path))
+    assert len(names(load_study(study_file(tmp_path, release)))) == 8  # default: every training setting
+    spec["dataset"]["train_settings"] = 2
+    path.write_text(yaml.safe_dump(spec))
+    with pytest.raises(StudyError, match="dataset.train_settings: .*more than gcn.val_settings"):
+        load_study(path)
+
+
+@pytest.mark.parametrize("key, value, words", [
+    ("split", "random", "protocol.split: expected one of release, volumes"),
+    ("folds", 1, "protocol.folds: expected at least 2"),
+])
+def test_bad_fold_keys_name_the_key(tmp_path, release, key, value, words):
+    with pytest.raises(StudyError, match=words):
+        load_study(study_file(tmp_path, release, **{key: value}))
+
+
+def test_the_mini_hypersim_refuses_folds_and_keeps_its_keys(monkeypatch):
+    """Studies without folds keep their cell names and every key: computed with the code before folds existed, the
+    code and library versions (which change with any edit) held fixed."""
+    from monolib.data import stage as dataset
+    from monolib.graphs import stage as scenegraphs
+    from monolib.retrieval import cell
+
+    monkeypatch.setattr(versions, "code_version", lambda stage: "CODE")
+    monkeypatch.setattr(versions, "library_versions", lambda stage: "LIBS")
+    expected = {"smoke": ("e3d6383b8605", "fd0faac3849e", "417d94c96288"),
+                "quick": ("3fca786354f6", "4da1e7b07a49", "fdda168b78b5")}
+    for name, keys in expected.items():
+        s = load_study(name, check_files=False)
+        assert s.folds() == [None] and {c.fold for c in grid(s)} == {None}
+        dk = dataset.dataset_key(s)
+        got = (dk, scenegraphs.scenario_key(s, "s1", dk, {m: "M" for m in s.model_names()}),
+               cell.cell_key(s, "gcn", "s1", 1.0, 0, inputs="INPUTS"))
+        assert got == keys
+        assert cell.cell_folder(s, "gcn", "s1", 1.0, 0) == paths.RUNS / name / "cells" / "gcn" / "s1__t1__s0"
+    from monolib.params import SYNTH_TRAIN_SETTINGS, DatasetSpec
+    assert DatasetSpec().train_settings == SYNTH_TRAIN_SETTINGS and DatasetSpec(source="hypersim").train_settings is None
+    s = load_study("smoke", check_files=False)
+    s.protocol.split = "volumes"
+    from monolib.params import _check
+    with pytest.raises(StudyError, match="protocol.split: folds by volume need real volumes"):
+        _check(s, check_files=False)
+
+
+def test_a_killed_fold_resumes_and_the_cells_record_their_fold(tmp_path, release, monkeypatch):
+    """The grid of a study with folds run in this process; a fold's cells lost as a killed run loses them (no
+    cell.json) run again, the other folds' are kept; the fold assignment can be read back from the cells."""
+    from monolib.io import read_json
+    from monolib.study.runner import run_grid, stages
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    study = load_study(study_file(tmp_path, release, split="volumes", folds=3))
+    study.thresholds = [1.0]
+    stages(study, progress=False)
+    first = run_grid(study, progress=False, in_process=True)
+    assert first["ran"] == 3
+    cells = {c.fold: paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed, c.fold) for c in grid(study)}
+    assert sorted(p.name for p in cells.values()) == ["s1__t1__s0__f0", "s1__t1__s0__f1", "s1__t1__s0__f2"]
+    records = {f: read_json(p / "cell.json") for f, p in cells.items()}
+    assert {f: r["fold"] for f, r in records.items()} == {0: 0, 1: 1, 2: 2}
+    tested = [{family(s) for s in r["protocols"]["paper"]["settings"]} for r in records.values()]
+    assert not tested[0] & tested[1] and not tested[1] & tested[2] and not tested[0] & tested[2]
+    (cells[1] / "cell.json").unlink()  # killed while fold 1 ran: its other files stay, its record was never written
+    again = run_grid(study, progress=False, in_process=True)
+    assert again["ran"] == 1 and set(again["cell_seconds"]) == {grid(study)[1].name}
+    assert read_json(cells[0] / "cell.json")["key"] == records[0]["key"]
