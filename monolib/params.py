@@ -204,8 +204,9 @@ class Protocol:
     recall_k: list[int] = field(default_factory=lambda: [1, 5, 10])
     precision_k: list[int] = field(default_factory=lambda: [2, 4, 6])
     # Which settings are tested (Hypersim sources only; `monolib.data.folds`). ``release``: the data's own train /
-    # test split. ``volumes``: the volumes (ai_VVV) of both splits together dealt into `folds` folds (seeded by the
-    # study's seed, whole volumes); each fold is the test split of one run of the grid, the other folds its training.
+    # test split. ``volumes``: that split, and beside it the volumes (ai_VVV) of both splits together dealt into
+    # `folds` folds (seeded by the study's seed, whole volumes); each fold is the test split of one run of the grid,
+    # the other folds its training.
     split: str = "release"
     folds: int = 5
 
@@ -300,14 +301,15 @@ class Study:
         return d
 
     def folds(self) -> list[Optional[int]]:
-        """The folds of the grid: ``[0 .. K-1]`` with `protocol.split: volumes`, else ``[None]`` (one split)."""
-        return list(range(self.protocol.folds)) if self.protocol.split == "volumes" else [None]
+        """The splits of the grid: None, the data's own (release) split, and with `protocol.split: volumes` the
+        folds ``0 .. K-1`` beside it (the release split stays reported beside the folds)."""
+        return [None] + (list(range(self.protocol.folds)) if self.protocol.split == "volumes" else [])
 
     def at_fold(self, fold: Optional[int]) -> "Study":
         """This study working on one fold (`fold`: an index of `folds()`; None: the release split). Raises
         `StudyError` for a fold the study does not have."""
         if fold not in self.folds():
-            want = f"0..{self.protocol.folds - 1}" if self.protocol.split == "volumes" else "none"
+            want = f"None or 0..{self.protocol.folds - 1}" if self.protocol.split == "volumes" else "None"
             raise StudyError(f"fold {fold!r}: {self.path} has protocol.split: {self.protocol.split} (folds: {want})")
         return self if fold == self.fold else dataclasses.replace(self, fold=fold)
 

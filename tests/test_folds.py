@@ -60,7 +60,7 @@ def test_folds_never_share_a_volume_and_the_seed_decides():
 
 def test_each_fold_tests_on_its_volumes_and_trains_on_the_others(tmp_path, release):
     study = load_study(study_file(tmp_path, release, split="volumes", folds=3))
-    assert [c.fold for c in grid(study)] == [0, 0, 1, 1, 2, 2]
+    assert [c.fold for c in grid(study)] == [None, None, 0, 0, 1, 1, 2, 2]
     tested = []
     for fold in range(3):
         split = published.select(study.at_fold(fold))
@@ -144,14 +144,16 @@ def test_a_killed_fold_resumes_and_the_cells_record_their_fold(tmp_path, release
     study.thresholds = [1.0]
     stages(study, progress=False)
     first = run_grid(study, progress=False, in_process=True)
-    assert first["ran"] == 3
+    assert first["ran"] == 4  # the release split and 3 folds
     cells = {c.fold: paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed, c.fold) for c in grid(study)}
-    assert sorted(p.name for p in cells.values()) == ["s1__t1__s0__f0", "s1__t1__s0__f1", "s1__t1__s0__f2"]
-    records = {f: read_json(p / "cell.json") for f, p in cells.items()}
+    assert sorted(p.name for p in cells.values()) == ["s1__t1__s0", "s1__t1__s0__f0", "s1__t1__s0__f1",
+                                                      "s1__t1__s0__f2"]
+    records = {f: read_json(cells[f] / "cell.json") for f in (0, 1, 2)}
     assert {f: r["fold"] for f, r in records.items()} == {0: 0, 1: 1, 2: 2}
+    assert "fold" not in read_json(cells[None] / "cell.json")
     tested = [{family(s) for s in r["protocols"]["paper"]["settings"]} for r in records.values()]
     assert not tested[0] & tested[1] and not tested[1] & tested[2] and not tested[0] & tested[2]
     (cells[1] / "cell.json").unlink()  # killed while fold 1 ran: its other files stay, its record was never written
     again = run_grid(study, progress=False, in_process=True)
-    assert again["ran"] == 1 and set(again["cell_seconds"]) == {grid(study)[1].name}
+    assert again["ran"] == 1 and set(again["cell_seconds"]) == {grid(study)[2].name}
     assert read_json(cells[0] / "cell.json")["key"] == records[0]["key"]

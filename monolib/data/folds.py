@@ -45,15 +45,14 @@ def fold_label(fold: int, k: int, volumes: list[str]) -> str:
 
 def split_names(study: Study, train: list[str], test: list[str]) -> tuple[list[str], list[str], str]:
     """``(training settings, test settings, what the test split is called)`` of the study's fold: the data's own
-    split for ``release``; for ``volumes``, fold `study.fold` of the volumes of both splits (`volume_folds`).
+    split when `study.fold` is None; else fold `study.fold` of the volumes of both splits (`volume_folds`).
     The training settings are then subsampled (`subsample`)."""
     pr = study.protocol
-    if pr.split == "release":
-        if study.fold is not None:
-            raise FoldError(f"fold {study.fold}: protocol.split is release (no folds)")
+    if study.fold is None:  # the data's own split (with folds by volume too: reported beside them)
         return subsample(study, sorted(train)), sorted(test), "test split"
-    if study.fold is None or not 0 <= study.fold < pr.folds:
-        raise FoldError(f"protocol.split: volumes needs a fold 0..{pr.folds - 1}, got {study.fold!r}")
+    if pr.split != "volumes" or not 0 <= study.fold < pr.folds:
+        raise FoldError(f"fold {study.fold}: expected none, or 0..folds - 1 with protocol.split: volumes "
+                        f"(protocol.split: {pr.split}, protocol.folds: {pr.folds})")
     every = sorted(set(train) | set(test))
     volumes = volume_folds({family(s) for s in every}, pr.folds, study.seed)[study.fold]
     held = set(volumes)

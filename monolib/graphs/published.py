@@ -156,7 +156,7 @@ def select(study: Study) -> dict[str, list[Data]]:
     graphs_of = {**by_split["train"], **by_split["test"]}
     train_names, test_all, label = folds.split_names(study, list(by_split["train"]), list(by_split["test"]))
     test_names = [s for s in test_all if len(graphs_of[s]) >= pr.frames]
-    where = f"{root / 'test'} ({len(by_split['test'])} settings)" if pr.split == "release" else \
+    where = f"{root / 'test'} ({len(by_split['test'])} settings)" if study.fold is None else \
         f"{root} {label}: {len(test_all)} settings (protocol.folds: fewer folds give each more settings)"
     try:
         chosen = protocol_settings(test_names, pr, where)
@@ -165,7 +165,7 @@ def select(study: Study) -> dict[str, list[Data]]:
     test = [g for s in sorted(set().union(*chosen.values())) for g in _evenly(graphs_of[s], pr.frames)]
     n_val = study.gcn.val_settings
     if len(train_names) <= n_val:
-        where = root / "train" if pr.split == "release" else f"{root} {label}"
+        where = root / "train" if study.fold is None else f"{root} {label}"
         raise PublishedGraphError(f"{where}: {len(train_names)} training settings, need more than "
                                   f"gcn.val_settings = {n_val}")
     per = study.dataset.train_frames_per_setting

@@ -44,5 +44,7 @@ def grid(study: Study) -> list[CellSpec]:
 
 
 def names(study: Study) -> set[str]:
-    """The cell folder names of the grid (``method/scenario__t<t>__s<seed>``, relative to ``cells/``)."""
-    return {c.name for c in grid(study)}
+    """The cell folder names of the grid's release split (``method/scenario__t<t>__s<seed>``, relative to
+    ``cells/``): what the report's tables read. The folds' cells (``...__f<fold>``) have their own tables
+    (`monolib.report.folds`)."""
+    return {c.name for c in grid(study) if c.fold is None}
