@@ -2,6 +2,8 @@
 format (the release is not in this repository), and the single released sample file read as it is."""
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
 import pytest
 import yaml
 
@@ -157,3 +159,55 @@ def test_a_killed_fold_resumes_and_the_cells_record_their_fold(tmp_path, release
     again = run_grid(study, progress=False, in_process=True)
     assert again["ran"] == 1 and set(again["cell_seconds"]) == {grid(study)[2].name}
     assert read_json(cells[0] / "cell.json")["key"] == records[0]["key"]
+
+
+def test_the_report_over_folds(tmp_path, release, monkeypatch):
+    """Tables over folds with the release column, folds.md with each fold's test volumes, and real_vs_synth.md
+    beside the committed quick figures, from a small grid of the files written here (2 seeds, thresholds 0 and 1,
+    a variant)."""
+    from monolib.report import folds as fold_report
+    from monolib.report.write import write_report
+    from monolib.study.runner import run_grid, stages
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    path = study_file(tmp_path, release, split="volumes", folds=3)
+    spec = yaml.safe_load(path.read_text())
+    spec.update(thresholds=[0, 1], seeds=[0, 1], variants={"ours": {"gcn": {"pooling": "meanmax"}, "thresholds": [0]}})
+    path.write_text(yaml.safe_dump(spec))
+    study = load_study(path)
+    stages(study, progress=False)
+    run_grid(study, progress=False, in_process=True)
+    written = write_report(study.name, study=study, n_boot=50)
+    out = paths.figures_dir(study.name)
+    assert out == tmp_path / "runs" / study.name / "figures"
+    t1 = pd.read_csv(out / "folds_table1_recall.csv")
+    assert set(t1["n_folds"]) == {3} and set(t1["n_seeds"]) == {2}
+    assert t1["release"].notna().all() and (t1["folds_lo"] <= t1["folds"]).all() and (t1["folds"] <= t1["folds_hi"]).all()
+    fid = pd.read_csv(out / "folds.csv")
+    assert list(fid["split"]) == ["release", "fold 0", "fold 1", "fold 2"]
+    vols = [set(v.split(", ")) for v in fid["test volumes"][1:]]
+    assert not (vols[0] & vols[1] or vols[1] & vols[2] or vols[0] & vols[2])
+    rvs = pd.read_csv(out / "real_vs_synth.csv")
+    assert set(rvs["comparison"]) == {"gcn at 1 - gcn at 0 (no edges)", "ours at 0 (no edges) - gcn at 0 (no edges)"}
+    quick = fold_report.synth_differences(paths.figures_dir("quick"))
+    got = rvs[(rvs["comparison"].str.startswith("gcn at 1")) & (rvs["metric"] == "recall@1")].iloc[0]
+    want = quick[(quick["ta"] == 1) & (quick["metric"] == "recall") & (quick["k"] == 1)].iloc[0]
+    assert got["synth"] == pytest.approx(want["diff"], abs=1e-4)
+    assert "real_vs_synth" in written and (out / "folds.md").read_text().startswith("# The folds of")
+
+
+def test_the_fold_bootstrap_resamples_folds():
+    """Folds of different means: the interval over folds is wider than within the folds alone, and a group against
+    itself differs by exactly 0."""
+    from monolib.report import statistics
+
+    rows = [(f, s, f"ai_{f:03d}_{n:03d}", q, 100.0 * (f == 0) + (q % 2)) for f in range(4) for s in (0, 1)
+            for n in range(3) for q in range(5)]
+    qv = pd.DataFrame(rows, columns=["fold", "seed", "setting", "query", "recall@1"]).assign(
+        method="gcn", scenario="s1", threshold=1.0, protocol="paper")
+    fboot = statistics.FoldBootstrap.for_queries(qv, n_boot=200)
+    iv = statistics.fold_intervals(qv, fboot).iloc[0]
+    assert iv["mean"] == pytest.approx(np.mean([100.4, 0.4, 0.4, 0.4]))
+    assert iv["ci_lo"] < 10 and iv["ci_hi"] > 40  # one fold of four at 100: the fold draw decides
+    same = statistics.fold_paired_difference(qv, qv, fboot).iloc[0]
+    assert same["diff"] == 0 and same["ci_lo"] == 0 and same["ci_hi"] == 0 and not same["significant"]

@@ -24,7 +24,7 @@ import pandas as pd
 
 from monolib import io, params, paths
 from monolib.params import PAPER, SIBLINGS
-from monolib.report import figures, results, statistics, tables, training
+from monolib.report import figures, folds, results, statistics, tables, training
 from monolib.retrieval import grid
 
 log = logging.getLogger(__name__)
@@ -221,5 +221,6 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
         written["depth_scale"] = out / "depth_scale.csv"
         written["recall_vs_depth_scale"] = figures.fig_recall_vs_depth_scale(depth, out / "recall_vs_depth_scale.png",
                                                                              n_boot=n_boot)
+    written.update(folds.write(study, out, n_boot))  # a study with folds by volume: its tables over folds
     log.info("report of %s written to %s", study_name, out)
     return written
