@@ -6,7 +6,8 @@ here (`tests/published_files.py`: 260 training files and 50 test files of 100 gr
 Writes the files (once) and a copy of the study file pointing at them into the work folder, runs the graph stage
 of fold 0 and a reduced grid of fold 0 in this process (gcn at 0, 1 m and infinity, ours at 0, layout at
 infinity; seed 0), and writes ``<work folder>/fold_timing.json``: seconds of the graph stage and of each cell, the
-epochs each cell ran and its training graphs, the machine and the date. Extrapolated in docs/real-data.md.
+epochs each cell ran and its training graphs, the machine and the date. Run again, it keeps those measurements
+(its cells are complete: timing them again would time a read) and adds the extrapolation (`extrapolate`).
 """
 from __future__ import annotations
 
@@ -20,6 +21,32 @@ from pathlib import Path
 import yaml
 
 CELLS = [("gcn", 0.0), ("gcn", 1.0), ("gcn", float("inf")), ("ours", 0.0), ("layout", float("inf"))]
+
+
+def extrapolate(timing: dict, full_graphs: int, folds: int, seeds: int, thresholds: int) -> dict:
+    """The whole study from one fold's measurement, assuming the cells run one after the other (two jobs of two
+    threads on two cores run about as fast as one job) and the same epochs at every size:
+
+    - per split (the release and each fold): the graph stage, then for each seed one gcn cell per threshold (the
+      mean of the measured gcn cells), one ``ours`` and one ``layout`` cell;
+    - at full size the training part of each cell (``train_s``) scaled by the training + validation graphs of a
+      fold at full size over those measured, the rest of the cell kept.
+    """
+    cells = timing["cells"]
+    gcn = [c for c in cells if c["method"] == "gcn"]
+    other = [c for c in cells if c["method"] != "gcn"]
+    measured_graphs = timing["train_graphs"] + timing["val_graphs"]
+
+    def split_seconds(scale: float) -> float:
+        def cell(c):
+            return c["seconds"] + c["train_s"] * (scale - 1)
+        per_seed = thresholds * sum(map(cell, gcn)) / len(gcn) + sum(map(cell, other))
+        return timing["graphs_s"] + seeds * per_seed
+
+    scale = full_graphs / measured_graphs
+    return {"splits": folds + 1, "seeds": seeds, "thresholds": thresholds, "full_train_val_graphs": full_graphs,
+            "scale": round(scale, 2), "quick_size_hours": round((folds + 1) * split_seconds(1.0) / 3600, 2),
+            "full_size_hours": round((folds + 1) * split_seconds(scale) / 3600, 2)}
 
 
 def main(work: Path) -> dict:
@@ -44,6 +71,17 @@ def main(work: Path) -> dict:
     spec.update(name="bench_folds", graphs_root=str(root))
     (work / "bench_folds.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
     study = load_study(work / "bench_folds.yaml")
+    if (work / "fold_timing.json").is_file():
+        out = json.loads((work / "fold_timing.json").read_text())
+        full = load_study(work / "bench_folds.yaml")
+        full.dataset.train_settings, full.dataset.train_frames_per_setting = None, 100  # published_folds.yaml's size
+        from monolib.graphs import published
+        picked = published.select(full.at_fold(0))
+        out["extrapolation"] = extrapolate(out, len(picked["train"]) + len(picked["val"]), study.protocol.folds,
+                                           len(study.seeds), len(study.thresholds))
+        (work / "fold_timing.json").write_text(json.dumps(out, indent=1) + "\n")
+        print(out["extrapolation"], flush=True)
+        return out
     out: dict = {"machine": f"{platform.machine()} {platform.processor()}".strip(), "cpus": os.cpu_count(),
                  "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), "threads": study.threads, "cells": []}
     t = time.perf_counter()
@@ -60,7 +98,7 @@ def main(work: Path) -> dict:
         out["cells"].append(cell)
         print(cell, flush=True)
     (work / "fold_timing.json").write_text(json.dumps(out, indent=1) + "\n")
-    return out
+    return main(work)  # + the extrapolation
 
 
 if __name__ == "__main__":
