@@ -542,6 +542,10 @@ def _check_scenarios(study: Study) -> None:
             _one_of(f"scenarios.{sname}.projection", sc.projection, PROJECTIONS)
         if sc.colour is not None:
             _one_of(f"scenarios.{sname}.colour", sc.colour, COLOURS)
+        if study.protocol.split == "volumes" and (sc.depth != "gt" or sc.semantic != "gt"):
+            _bad(f"scenarios.{sname}", "protocol.split: volumes needs ground-truth scenarios (depth: gt, semantic: "
+                                       "gt): the perception models train on the release's training split, which "
+                                       "holds other folds' test volumes")
         if not study.graphs_root:
             continue
         if sc.depth != "gt" or sc.semantic != "gt":

@@ -211,3 +211,18 @@ def test_the_fold_bootstrap_resamples_folds():
     assert iv["ci_lo"] < 10 and iv["ci_hi"] > 40  # one fold of four at 100: the fold draw decides
     same = statistics.fold_paired_difference(qv, qv, fboot).iloc[0]
     assert same["diff"] == 0 and same["ci_lo"] == 0 and same["ci_hi"] == 0 and not same["significant"]
+
+
+def test_folds_refuse_what_would_train_on_a_test_volume(tmp_path, release):
+    """Perception models and image encoders train on the release's training split, which holds other folds' test
+    volumes: a study with folds by volume runs ground-truth graph scenarios only."""
+    path = study_file(tmp_path, release, split="volumes")
+    spec = yaml.safe_load(path.read_text())
+    spec["dataset"] = {"source": "hypersim", "root": str(tmp_path)}
+    spec.pop("graphs_root")
+    path.write_text(yaml.safe_dump({**spec, "scenarios": {"s2": {"depth": "depth_r18", "semantic": "gt"}}}))
+    with pytest.raises(StudyError, match="scenarios.s2: protocol.split: volumes needs ground-truth scenarios"):
+        load_study(path)
+    path.write_text(yaml.safe_dump({**spec, "methods": ["gcn", "color_hist"]}))
+    with pytest.raises(StudyError, match="methods: protocol.split: volumes runs graph methods only"):
+        load_study(path)

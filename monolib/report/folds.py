@@ -22,6 +22,7 @@ from pathlib import Path
 import pandas as pd
 
 from monolib import io, paths
+from monolib.data.protocols import family
 from monolib.graphs import fidelity, stage as scenegraphs
 from monolib.params import PAPER, Study
 from monolib.report import results, statistics, tables
@@ -101,7 +102,7 @@ def fold_fidelity(study: Study) -> pd.DataFrame:
         at = study.at_fold(fold)
         test = scenegraphs.load(at, SCENARIO)["test"]
         stats = fidelity.split_statistics(test)
-        volumes = sorted({g.setting.rsplit("_", 1)[0] for g in test})
+        volumes = sorted({family(g.setting) for g in test})
         rows.append({"split": "release" if fold is None else f"fold {fold}", "test volumes": ", ".join(volumes),
                      "test settings": int(stats["settings"]), "test graphs": int(stats["graphs"]),
                      **{short: stats.get(name, math.nan) for name, short in FIDELITY_COLUMNS.items()}})
