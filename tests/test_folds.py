@@ -170,7 +170,9 @@ def test_the_report_over_folds(tmp_path, release, monkeypatch):
     from monolib.study.runner import run_grid, stages
 
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
-    path = study_file(tmp_path, release, split="volumes", folds=3)
+    root = tmp_path / "graphs12"  # 12 frames a setting: the fidelity statistics take settings of >= 10 frames
+    write_release(root, layout(VOLUMES, settings=2, test_volumes=[5, 6]), cameras=2, frames=6)
+    path = study_file(tmp_path, root, split="volumes", folds=3, frames=10, queries=8, positives=2)
     spec = yaml.safe_load(path.read_text())
     spec.update(thresholds=[0, 1], seeds=[0, 1], variants={"ours": {"gcn": {"pooling": "meanmax"}, "thresholds": [0]}})
     path.write_text(yaml.safe_dump(spec))
@@ -185,6 +187,8 @@ def test_the_report_over_folds(tmp_path, release, monkeypatch):
     assert t1["release"].notna().all() and (t1["folds_lo"] <= t1["folds"]).all() and (t1["folds"] <= t1["folds_hi"]).all()
     fid = pd.read_csv(out / "folds.csv")
     assert list(fid["split"]) == ["release", "fold 0", "fold 1", "fold 2"]
+    assert (fid["test settings"] == 2).all() and fid["nodes / graph"].between(2, 9).all()
+    assert fid["Jaccard within"].between(0, 1).all()
     vols = [set(v.split(", ")) for v in fid["test volumes"][1:]]
     assert not (vols[0] & vols[1] or vols[1] & vols[2] or vols[0] & vols[2])
     rvs = pd.read_csv(out / "real_vs_synth.csv")

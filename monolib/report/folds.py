@@ -238,6 +238,7 @@ def write(study: Study | None, out: Path, n_boot: int = statistics.N_BOOT) -> di
         io.write_text(out / f"{name}.md", tables_markdown(t, metric, study))
         written[name] = out / f"{name}.md"
     figures = paths.figures_dir(SYNTH_STUDY)
+    figures = figures.relative_to(paths.ROOT) if figures.is_relative_to(paths.ROOT) else figures
     rvs = real_vs_synth(study, qv, fboot, figures)
     io.write_text(out / "real_vs_synth.csv", tables.csv_text(rvs))
     io.write_text(out / "real_vs_synth.md", real_vs_synth_markdown(rvs, study, figures))
