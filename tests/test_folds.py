@@ -152,6 +152,8 @@ def test_a_killed_fold_resumes_and_the_cells_record_their_fold(tmp_path, release
                                                       "s1__t1__s0__f2"]
     records = {f: read_json(cells[f] / "cell.json") for f in (0, 1, 2)}
     assert {f: r["fold"] for f, r in records.items()} == {0: 0, 1: 1, 2: 2}
+    for r in records.values():  # the fold assignment read from the cells: no volume on both sides
+        assert r["volumes"]["test"] and r["volumes"]["train"] and not set(r["volumes"]["test"]) & set(r["volumes"]["train"])
     assert "fold" not in read_json(cells[None] / "cell.json")
     tested = [{family(s) for s in r["protocols"]["paper"]["settings"]} for r in records.values()]
     assert not tested[0] & tested[1] and not tested[1] & tested[2] and not tested[0] & tested[2]

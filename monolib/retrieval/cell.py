@@ -25,6 +25,7 @@ import torch
 
 from monolib import device as devices, methods, paths, versions
 from monolib.data import selection, stage as dataset
+from monolib.data.protocols import family
 from monolib.graphs import stage as scenegraphs
 from monolib.io import (
     atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
@@ -190,6 +191,9 @@ def _graph_embeddings(study: Study, method: str, scenario: str, threshold: float
              "test_nodes_mean": float(np.mean([g.num_nodes for g in test])),
              "test_edges_mean": float(np.mean([g.edge_index.shape[1] for g in test])),
              "test_empty_graphs": int(sum(g.num_nodes == 0 for g in test))}
+    if study.fold is not None:  # a fold's volumes on each side, as the cell read them (none on both)
+        extra["volumes"] = {"train": sorted({family(g.setting) for g in graphs["train"] + graphs["val"]}),
+                            "test": sorted({family(g.setting) for g in test})}
     timings["embed_s"] = time.perf_counter() - t
     return emb, [g.frame for g in test], [g.setting for g in test], extra, pd.DataFrame(result.history), state
 
