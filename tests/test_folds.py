@@ -232,3 +232,39 @@ def test_folds_refuse_what_would_train_on_a_test_volume(tmp_path, release):
     path.write_text(yaml.safe_dump({**spec, "methods": ["gcn", "color_hist"]}))
     with pytest.raises(StudyError, match="methods: protocol.split: volumes runs graph methods only"):
         load_study(path)
+
+
+class _Download:
+    """What frame selection reads of a Hypersim download (`HypersimDataset`): settings per split, frames per
+    setting (6 volumes of 2 settings, 5 frames each; volumes 5 and 6 in the test split, volume 4 in val)."""
+    root = "download"
+
+    def settings(self, split=None):
+        split_of = {5: "test", 6: "test", 4: "val"}
+        return [f"ai_{v:03d}_{n:03d}" for v in VOLUMES for n in (1, 2)
+                if split is None or split_of.get(v, "train") == split]
+
+    def frames(self, setting):
+        from types import SimpleNamespace
+        return [SimpleNamespace(setting=setting, key=f"{setting}/cam_00/{i:04d}") for i in range(5)]
+
+
+def test_folds_of_a_hypersim_download(tmp_path, release):
+    """The same folds on a real download's frame selection (`dataset.source: hypersim`): the release split is the
+    download's, each fold tests on its volumes and trains on the others, the subsample keeps `train_settings`."""
+    from monolib.data.selection import select_frames
+
+    path = study_file(tmp_path, release, split="volumes", folds=3, frames=5, queries=4, positives=1)
+    spec = yaml.safe_load(path.read_text())
+    spec.pop("graphs_root")
+    spec["dataset"] = {"source": "hypersim", "root": str(tmp_path), "train_settings": 5,
+                       "train_frames_per_setting": 2}
+    path.write_text(yaml.safe_dump(spec))
+    study, ds = load_study(path), _Download()
+    release_sel = select_frames(study, ds, 2)
+    assert {family(f.setting) for f in release_sel.test} == {"ai_005", "ai_006"}
+    for fold in range(3):
+        sel = select_frames(study.at_fold(fold), ds, 2)
+        test, train = {family(f.setting) for f in sel.test}, {family(f.setting) for f in sel.train + sel.val}
+        assert test and train and not test & train
+        assert len({f.setting for f in sel.train + sel.val}) == 5
