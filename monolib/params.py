@@ -402,9 +402,10 @@ def _one_of(key: str, value, allowed) -> None:
         _bad(key, f"expected one of {', '.join(map(str, allowed))}, got {value!r}")
 
 
-def _at_least(key: str, value, low) -> None:
+def _at_least(key: str, value, low, unit: str = "") -> None:
+    """`value` >= `low`, or one StudyError naming `key` (`unit`: what is counted, after the number)."""
     if value < low:
-        _bad(key, f"expected at least {low}, got {value}")
+        _bad(key, f"expected at least {low}{unit}, got {value}")
 
 
 # the allowed values of each choice key, written once (the checks below read them)
@@ -466,7 +467,8 @@ def _check_protocol(study: Study) -> None:
         if pr.frames > ds.frames_per_setting:
             _bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders {ds.frames_per_setting}")
     for k in pr.recall_k + pr.precision_k:
-        _at_least("protocol.recall_k", k, 1)
+        if k < 1:
+            _bad("protocol.recall_k", f"k must be at least 1, got {k}")
 
 
 def _check_grid(study: Study) -> None:
@@ -494,11 +496,11 @@ def _check_grid(study: Study) -> None:
 
 def _check_perception(study: Study, check_files: bool) -> None:
     pc = study.perception
-    _at_least("perception.threads", pc.threads, 1)
+    _at_least("perception.threads", pc.threads, 1, " torch thread")
     names = study.model_names()
     if len(set(names)) != len(names) or "gt" in names:
         _bad("perception", f"model names must be unique and not 'gt', got {names}")
-    _at_least("perception.predict_batch", pc.predict_batch, 1)
+    _at_least("perception.predict_batch", pc.predict_batch, 1, " frame per forward pass")
     if pc.loader_workers < 0:
         _bad("perception.loader_workers", f"expected 0 (read frames in the main process) or more worker processes, "
                                           f"got {pc.loader_workers}")
@@ -522,7 +524,8 @@ def _check_perception(study: Study, check_files: bool) -> None:
         _at_least(f"{where}.epochs", spec.epochs, 1)
         if spec.batch_size < 2:  # BatchNorm needs two samples: a batch of 1 would skip every training step
             _bad(f"{where}.batch_size", f"expected at least 2 frames per training batch, got {spec.batch_size}")
-        _at_least(f"{where}.val_settings", spec.val_settings, 0)
+        if spec.val_settings < 0:
+            _bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
         if spec.weights and check_files and not resolve_path(spec.weights).is_file():
             _bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights)}")
 
