@@ -631,11 +631,15 @@ def find_study(study: str | Path) -> Path:
 
 
 def _merge(base: dict, over: dict) -> dict:
-    """`over` on top of `base`: mappings merged key by key, everything else replaced. Order: the base's keys, then
-    the new ones; but when `over` re-lists every key of `base`, its own order (the grid's and the tables' order)."""
+    """`over` on top of `base`: mappings merged key by key, everything else replaced; a key that `over` sets to
+    null where `base` holds a mapping (a scenario, a variant) is removed. Order: the base's keys, then the new ones;
+    but when `over` re-lists every key of `base`, its own order (the grid's and the tables' order)."""
     out = {k: None for k in over} if set(base) <= set(over) else dict(base)
     for k, v in over.items():
-        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+        if v is None and isinstance(base.get(k), dict):
+            del out[k]
+        else:
+            out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
     return out
 
 
