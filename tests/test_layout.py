@@ -4,6 +4,7 @@ another of monolib inside a function only to defer a heavy library, saying so on
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -107,3 +108,30 @@ def test_a_cell_computes_each_upstream_key_once(smoke_study, tmp_path):
     assert calls["monolib.data.stage.dataset_key"] == 1
     assert calls["monolib.perception.stage.model_key"] == 2  # its depth net and its segmentation net
     assert calls["monolib.retrieval.cell.cell_key"] == 1
+
+
+HISTORY = [  # what a comment that tells history instead of the code says
+    (re.compile(r"\b[Ii]ssues? ?#?\d+"), "an issue number"),
+    (re.compile(r"\b20\d\d-\d\d-\d\d\b"), "a date"),
+    (re.compile(r"\b[Gg]enerator(?: version)? \d"), "a generator version"),
+    (re.compile(r"\.\./shared/docs"), "a document a clone does not have"),
+]
+
+
+def source_files() -> list[Path]:
+    root = PACKAGE.parent
+    files = [f for d in ("monolib", "tests") for f in sorted((root / d).rglob("*.py"))]
+    files += sorted((root / "params").glob("*.yaml")) + sorted((root / "notebooks").glob("*.ipynb"))
+    return [f for f in files if f.name != "test_layout.py"]
+
+
+def test_code_and_studies_say_what_is_not_when():
+    """Comments, docstrings, study files and notebooks explain the code as it is: no issue numbers, dates,
+    generator versions or references to documents outside the repository (those live in CHANGELOG.md)."""
+    found = []
+    for f in source_files():
+        for n, line in enumerate(f.read_text().splitlines(), 1):
+            for pattern, what in HISTORY:
+                if pattern.search(line):
+                    found.append(f"{f.relative_to(PACKAGE.parent)}:{n}: {what}: {line.strip()[:120]}")
+    assert not found, "\n".join(found)

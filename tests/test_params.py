@@ -10,10 +10,14 @@ from monolib.params import StudyError, load_study, resolve_path
 
 
 def _merged(base: dict, over: dict) -> dict:
-    """What `extends:` means, written out again here: mappings merged key by key, anything else replaced."""
+    """What `extends:` means, written out again here: mappings merged key by key, anything else replaced, a mapping
+    set to null removed."""
     out = dict(base)
     for k, v in over.items():
-        out[k] = _merged(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+        if v is None and isinstance(base.get(k), dict):
+            del out[k]
+        else:
+            out[k] = _merged(base[k], v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
     return out
 
 
@@ -38,10 +42,11 @@ def _assert_loaded(loaded, raw, where: str) -> None:
         assert loaded == raw and type(loaded) is type(raw), f"{where}: {loaded!r} != {raw!r}"
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in paths.PARAMS.glob("*.yaml")))
+@pytest.mark.parametrize("name", sorted(p.stem for p in paths.PARAMS.glob("*.yaml") if p.name != "claims.yaml"))
 def test_committed_studies_load(name):
-    """Each params/<name>.yaml loads, names itself <name> (so `monolib study <name>` and its runs/ folder agree),
-    holds every value its file (and the file it extends) writes, and is a grid the runner can run."""
+    """Each params/<name>.yaml but claims.yaml (the claims per study) loads, names itself <name> (so `monolib study
+    <name>` and its runs/ folder agree), holds every value its file (and the file it extends) writes, and is a grid
+    the runner can run."""
     file = paths.PARAMS / f"{name}.yaml"
     raw = yaml.safe_load(file.read_text())
     s = load_study(name, check_files=name in ("smoke", "quick"))
@@ -165,6 +170,18 @@ def test_an_extending_study_merges_key_by_key(tmp_path):
     assert list(s.variants) == ["gine", "ours"]
     assert s.variants["ours"].gcn == {"pooling": "meanmax"} and s.variants["ours"].thresholds is None
     assert load_study(base).variants["ours"].thresholds == [2.0]
+
+
+def test_an_extending_study_removes_what_it_sets_to_null(tmp_path):
+    """A scenario or variant of the base that the extending file sets to null is not in the study (the colour study
+    keeps two of quick's scenarios); a list set to null is a null value, as before."""
+    child = tmp_path / "child.yaml"
+    child.write_text(yaml.safe_dump({"name": "child", "extends": "quick", "scenarios": {"s2": None, "s4": None},
+                                     "variants": {"layout": None, "ours": {"thresholds": None}}}))
+    s = load_study(child)
+    assert list(s.scenarios) == ["s1", "s3"] and list(s.variants) == ["ours"]
+    assert s.variants["ours"].thresholds is None
+    assert list(load_study("quick").scenarios) == ["s1", "s2", "s3", "s4"]
 
 
 def test_threshold_zero_and_no_siblings_protocol_are_allowed(tmp_path):

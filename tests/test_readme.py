@@ -121,7 +121,8 @@ def test_block_headings_sit_below_their_section(tmp_path: Path):
 def test_a_missing_figure_leaves_a_line_saying_what_writes_it(tmp_path: Path):
     page = "# Page\n\n## Claims\n\n<!-- BEGIN figures/claims.md -->\n<!-- END figures/claims.md -->\n"
     out = readme.updated(page, tmp_path)
-    assert "_(not generated yet: `make study` writes figures/claims.md)_\n<!-- END figures/claims.md -->" in out
+    assert ("_(not generated yet: figures/claims.md, written by its study's command in README.md)_\n"
+            "<!-- END figures/claims.md -->") in out
 
 
 def test_update_rewrites_every_page(tmp_path: Path):

@@ -1,6 +1,7 @@
 """The procedural mini-Hypersim (monolib.data.synth), checked against the format spec with h5py alone.
 
-Spec: ../shared/docs/hypersim-format.md sections 1, 1a, 1b, 2, 3, 6, 7.
+The layout checked is Hypersim's: the scene folders, `_detail` metadata, the camera files and the frames' HDF5 and
+preview files, as `monolib.data.hypersim` reads them from a real download.
 """
 import csv
 import json

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from monolib.data import folds
 from monolib.data.hypersim import Frame, HypersimDataset
 from monolib.data.protocols import protocol_settings
 from monolib.params import Study
@@ -40,22 +41,25 @@ def select_frames(study: Study, ds: HypersimDataset, val_settings: int) -> Selec
     evenly spread over the setting's scenes. Train: every training setting (`train_frames_per_setting` frames each,
     evenly spread); the last `val_settings` of them are validation. `dataset.max_settings` limits the training
     settings. Real Hypersim's 'val' partition counts as training data here (the study's validation is taken from it).
+    With `protocol.split: volumes` the test settings are those of the study's fold and the training settings every
+    other fold's; `dataset.train_settings` subsamples the training settings of real data (`monolib.data.folds`).
     """
     pr = study.protocol
-    test_names = [s for s in ds.settings("test") if len(ds.frames(s)) >= pr.frames]
-    short = [f"{s} ({len(ds.frames(s))})" for s in ds.settings("test") if len(ds.frames(s)) < pr.frames]
-    where = (f"{ds.root} (test split: {len(ds.settings('test'))} settings"
+    release_train = sorted(ds.settings("train") + ds.settings("val"))
+    if study.dataset.max_settings:
+        release_train = release_train[: study.dataset.max_settings]
+    train_names, test_all, label = folds.split_names(study, release_train, ds.settings("test"))
+    test_names = [s for s in test_all if len(ds.frames(s)) >= pr.frames]
+    short = [f"{s} ({len(ds.frames(s))})" for s in test_all if len(ds.frames(s)) < pr.frames]
+    where = (f"{ds.root} ({label}: {len(test_all)} settings"
              + (f"; with fewer than {pr.frames} frames: {', '.join(short[:8])}{' ...' if len(short) > 8 else ''})"
                 if short else ")"))
     chosen = protocol_settings(test_names, pr, where)
     test_names = sorted(set().union(*chosen.values()))
     test = [f for s in test_names for f in _evenly(ds.frames(s), pr.frames)]
-    train_names = ds.settings("train") + ds.settings("val")
-    train_names = sorted(train_names)
-    if study.dataset.max_settings:
-        train_names = train_names[: study.dataset.max_settings]
     if len(train_names) <= val_settings:
-        raise ValueError(f"{ds.root}: {len(train_names)} training settings, need more than {val_settings} (validation)")
+        raise ValueError(f"{ds.root} ({label}): {len(train_names)} training settings, need more than {val_settings} "
+                         f"(validation)")
     per = study.dataset.train_frames_per_setting
     fit_names, val_names = train_names[: len(train_names) - val_settings], train_names[len(train_names) - val_settings :]
     train = [f for s in fit_names for f in _evenly(ds.frames(s), per)]

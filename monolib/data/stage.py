@@ -10,7 +10,7 @@ from monolib import versions
 from monolib.data import synth
 from monolib.data.hypersim import HypersimDataset
 from monolib.io import sha256
-from monolib.params import Study, key_of
+from monolib.params import SYNTH_TRAIN_SETTINGS, Study, key_of
 
 
 def ensure_dataset(study: Study, progress: bool = True) -> HypersimDataset:
@@ -26,6 +26,13 @@ def dataset_key(study: Study) -> str:
     spec = dataclasses.asdict(study.dataset)
     for where in ("root", "metadata_dir", "workers"):  # where the files are and how many processes read them
         spec.pop(where)
+    if study.dataset.source != "synth":
+        # a real dataset's `train_settings` is a subsample of its training settings (None: all of them), under its
+        # own name; `train_settings` holds the mini-Hypersim's default, as in the keys of every study without one
+        subsample = spec.pop("train_settings")
+        spec["train_settings"] = SYNTH_TRAIN_SETTINGS
+        if subsample is not None:
+            spec["train_subsample"] = subsample
     if study.dataset.source == "synth":
         return key_of({"dataset": spec, "seed": study.seed, "code": versions.code_version("dataset"),
                        "libraries": versions.library_versions("dataset")})

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from torch_geometric.data import Data
 
+from monolib.data import folds
 from monolib.data.protocols import ProtocolDataError, protocol_settings
 from monolib.io import DataFileError
 from monolib.params import Study, resolve_path
@@ -136,25 +137,38 @@ def _evenly(items: list, n: int) -> list:
     return [items[i] for i in np.round(np.linspace(0, len(items) - 1, n)).astype(int)]
 
 
+def read_settings(root: Path) -> dict[str, dict[str, list[Data]]]:
+    """``{split: {setting: its graphs, by frame}}`` of the release's ``train/`` and ``test/`` folders."""
+    by_setting: dict[str, dict[str, list[Data]]] = {"train": {}, "test": {}}
+    for split in by_setting:
+        for g in read_folder(root / split):
+            by_setting[split].setdefault(g.setting, []).append(g)
+    return by_setting
+
+
 def select(study: Study) -> dict[str, list[Data]]:
-    """Train / val / test graphs of a published-graphs study, selected as `selection.select_frames` does."""
+    """Train / val / test graphs of a published-graphs study, selected as `selection.select_frames` does: the
+    release's split, or fold `study.fold` of its volumes (`monolib.data.folds`), the training settings subsampled
+    by `dataset.train_settings`."""
     root = resolve_path(study.graphs_root)
     pr = study.protocol
-    by_setting: dict[str, dict[str, list[Data]]] = {}
-    for split in ("train", "test"):
-        for g in read_folder(root / split):
-            by_setting.setdefault(split, {}).setdefault(g.setting, []).append(g)
-    test_names = [s for s in sorted(by_setting["test"]) if len(by_setting["test"][s]) >= pr.frames]
+    by_split = read_settings(root)
+    graphs_of = {**by_split["train"], **by_split["test"]}
+    train_names, test_all, label = folds.split_names(study, list(by_split["train"]), list(by_split["test"]))
+    test_names = [s for s in test_all if len(graphs_of[s]) >= pr.frames]
+    where = f"{root / 'test'} ({len(by_split['test'])} settings)" if study.fold is None else \
+        f"{root} {label}: {len(test_all)} settings (protocol.folds: fewer folds give each more settings)"
     try:
-        chosen = protocol_settings(test_names, pr, f"{root / 'test'} ({len(by_setting['test'])} settings)")
+        chosen = protocol_settings(test_names, pr, where)
     except ProtocolDataError as exc:
         raise PublishedGraphError(str(exc)) from None
-    test = [g for s in sorted(set().union(*chosen.values())) for g in _evenly(by_setting["test"][s], pr.frames)]
-    names = sorted(by_setting["train"])
+    test = [g for s in sorted(set().union(*chosen.values())) for g in _evenly(graphs_of[s], pr.frames)]
     n_val = study.gcn.val_settings
-    if len(names) <= n_val:
-        raise PublishedGraphError(f"{root / 'train'}: {len(names)} settings, need more than gcn.val_settings = {n_val}")
+    if len(train_names) <= n_val:
+        where = root / "train" if study.fold is None else f"{root} {label}"
+        raise PublishedGraphError(f"{where}: {len(train_names)} training settings, need more than "
+                                  f"gcn.val_settings = {n_val}")
     per = study.dataset.train_frames_per_setting
-    train = [g for s in names[: len(names) - n_val] for g in _evenly(by_setting["train"][s], per)]
-    val = [g for s in names[len(names) - n_val :] for g in _evenly(by_setting["train"][s], per)]
+    train = [g for s in train_names[: len(train_names) - n_val] for g in _evenly(graphs_of[s], per)]
+    val = [g for s in train_names[len(train_names) - n_val :] for g in _evenly(graphs_of[s], per)]
     return {"train": train, "val": val, "test": test}

@@ -44,7 +44,8 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
                  model_keys: Optional[dict[str, str]] = None) -> str:
     """Cache key of a scenario's graphs: the data stage's key, the frame selection, the two sources' model keys
     (the perception stage's), the depth scale, the back-projection (`Study.projection`), the node colours
-    (`Study.colour`) and the version of the graph code and libraries (`monolib.versions`). `dataset_key`, `model_keys`: the upstream stages' keys, when the
+    (`Study.colour`), the fold of a study with folds by volume (`Study.at_fold`) and the version of the graph code
+    and libraries (`monolib.versions`). `dataset_key`, `model_keys`: the upstream stages' keys, when the
     caller holds them (`scenario_keys`); computed here otherwise."""
     sc = study.scenarios[scenario]
     data_key = dataset_key if dataset_key is not None else dataset.dataset_key(study)
@@ -53,7 +54,9 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
     for role, name in (("depth", sc.depth), ("semantic", sc.semantic)):
         sources[role] = "gt" if name == "gt" else models.get(name) or perception.model_key(study, name, data_key)
     pr = study.protocol  # what chooses the frames (not the k of the metrics, nor the queries' draw)
-    return key_of({"dataset": data_key, "published": published_fingerprint(study), "seed": study.seed,
+    # the fold, with folds by volume (a study of the release split keeps the key it always had)
+    folds = {"folds": {"k": pr.folds, "fold": study.fold}} if pr.split == "volumes" else {}
+    return key_of({**folds, "dataset": data_key, "published": published_fingerprint(study), "seed": study.seed,
                    "frames": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
                               "frames": pr.frames},
                    "val": study.gcn.val_settings, "sources": sources, "depth_scale": sc.depth_scale,

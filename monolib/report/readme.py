@@ -27,9 +27,10 @@ def all_pages(root: Path = paths.ROOT) -> list[Path]:
     return [root / "README.md", *sorted((root / "docs").glob("*.md"))]
 
 
-def render(path: Path) -> str:
+def render(path: Path, name: str = "") -> str:
+    """A figures file as markdown; a line naming it when it is not written yet (`name`: its path in figures/)."""
     if not path.is_file():
-        return f"_(not generated yet: `make study` writes figures/{path.name})_\n"
+        return f"_(not generated yet: figures/{name or path.name}, written by its study's command in README.md)_\n"
     if path.suffix == ".md":
         return path.read_text().rstrip("\n") + "\n"
     if path.suffix == ".csv":
@@ -63,7 +64,7 @@ def section_level(text: str) -> int:
 
 def updated(text: str, figures: Path) -> str:
     def block(m: re.Match) -> str:
-        body = demote(render(figures / m.group("name")), section_level(text[: m.start()]))
+        body = demote(render(figures / m.group("name"), m.group("name")), section_level(text[: m.start()]))
         return m.group(1) + body + m.group(4)
 
     return BLOCK.sub(block, text)

@@ -58,6 +58,7 @@ SUMMARY_KEYS = ["method", "scenario", "threshold", "protocol", "metric", "k"]
 RANKING_COLUMNS = ["query", "query_setting", "rank", "match", "match_setting", "distance"]
 PROTOCOL_COLUMNS = ["frame", "setting", "role"]
 QUERY_KEYS = ["method", "scenario", "threshold", "seed", "protocol", "setting", "query"]
+FOLD_CELL = re.compile(r"__f\d+$")  # a fold's cell (folds by volume): read by `monolib.report.folds`, not here
 IMAGE_SCENARIO = "rgb"          # the scenario name image-only baselines are written under
 METRIC_TOLERANCE = 1e-6         # percent: a recorded metric and its recomputation from the rankings agree within
 
@@ -172,9 +173,10 @@ def cell_files(study_name: str, grid: Optional[Collection[str]] = None) -> list[
 
 def left_out(study_name: str, grid: Collection[str]) -> list[Path]:
     """The ``cell.json`` files of a study's folder outside its grid (a seed, threshold, scenario or method no
-    longer in the study file): kept on disk, left out of every table."""
+    longer in the study file): kept on disk, left out of every table. The folds' cells are not counted (their
+    tables: `monolib.report.folds`)."""
     inside = set(cell_files(study_name, grid))
-    return [f for f in cell_files(study_name) if f not in inside]
+    return [f for f in cell_files(study_name) if f not in inside and not FOLD_CELL.search(f.parent.name)]
 
 
 def read_rankings(cell: Path) -> pd.DataFrame:

@@ -21,6 +21,9 @@ itself gives exactly 0). Thresholds significantly below their scenario's best ar
 (`threshold_tests`; ``threshold_tests.csv``), and so are the differences of the controlled comparisons.
 
 Every statistic is computed within one protocol (its own bootstrap; nothing is paired across protocols).
+
+Folds by volume add a level above the seeds (`FoldBootstrap`, `fold_intervals`, `fold_paired_difference`): per
+resample the folds are drawn with replacement, then each drawn fold's seeds, settings and queries as above.
 """
 from __future__ import annotations
 
@@ -146,6 +149,82 @@ class Bootstrap:
         return {"mean": self.observed(values, nq), "ci_lo": lo, "ci_hi": hi, "boot": boot}
 
 
+class FoldBootstrap:
+    """`Bootstrap` with a fold level above it, for studies cross-validated by volume: per resample the folds are
+    drawn with replacement and each drawn fold contributes its own (seed, setting, query) resample; the statistic
+    is the mean over the drawn folds (each fold weighs the same, whatever its number of settings). A fold's
+    settings use their own slots of the underlying `Bootstrap` (`offset`), so two folds never share setting or
+    query draws; the seeds, crossed with the folds (the same seeds train every fold), share theirs. The fold draws
+    come from their own numpy stream (`BOOT_SEED`, 1), so the study's other intervals keep their numbers.
+    Resampled with the same numbers, two groups of the same folds are paired (`fold_paired_difference`)."""
+
+    def __init__(self, n_folds: int, n_seeds: int, settings_per_fold: int, n_queries: int, n_boot: int = N_BOOT,
+                 seed: int = BOOT_SEED):
+        self.n_folds, self.settings_per_fold = int(n_folds), int(settings_per_fold)
+        self.boot = Bootstrap(n_seeds, self.n_folds * self.settings_per_fold, n_queries, n_boot, seed)
+        self.u_fold = np.random.default_rng([seed, 1]).random((self.boot.n_boot, self.n_folds))
+
+    @classmethod
+    def for_queries(cls, qv: pd.DataFrame, n_boot: int = N_BOOT, seed: int = BOOT_SEED) -> "FoldBootstrap":
+        """Sized for every group of a per-query table with a ``fold`` column."""
+        keys = [k for k in GROUP_KEYS if k in qv.columns] + ["fold"]
+        return cls(int(qv["fold"].nunique()), int(qv.groupby(keys)["seed"].nunique().max()),
+                   int(qv.groupby(keys + ["seed"])["setting"].nunique().max()),
+                   int(qv.groupby(keys + ["seed", "setting"]).size().max()), n_boot, seed)
+
+    def cubes(self, frame: pd.DataFrame, cols: list[str]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """One `Bootstrap.cube` per fold of `frame` (folds in sorted order)."""
+        return [Bootstrap.cube(g, cols) for _, g in sorted(frame.groupby("fold"), key=lambda kv: kv[0])]
+
+    def interval(self, cubes: list[tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
+        """``{"mean", "ci_lo", "ci_hi", "boot"}`` per metric: the mean over folds of each fold's mean, and the
+        percentiles 2.5 and 97.5 of the fold-level resample."""
+        if len(cubes) > self.n_folds:
+            raise ValueError(f"fold bootstrap sized for {self.n_folds} folds, got {len(cubes)}")
+        per = np.stack([self.boot.resample(v, nq, offset=f * self.settings_per_fold)
+                        for f, (v, nq) in enumerate(cubes)])                                    # [F, B, M]
+        n = len(cubes)
+        drawn = np.minimum((self.u_fold[:, :n] * n).astype(np.intp), n - 1)                    # [B, F]
+        boot = per[drawn, np.arange(per.shape[1])[:, None]].mean(axis=1)                       # [B, M]
+        lo, hi = np.nanpercentile(boot, [2.5, 97.5], axis=0)
+        mean = np.mean([Bootstrap.observed(v, nq) for v, nq in cubes], axis=0)
+        return {"mean": mean, "ci_lo": lo, "ci_hi": hi, "boot": boot}
+
+
+def fold_intervals(qv: pd.DataFrame, fboot: FoldBootstrap) -> pd.DataFrame:
+    """`intervals` over folds: per (method, scenario, threshold, protocol, metric, k) the mean over folds and
+    seeds and its 95 % interval resampling folds, settings, queries and seeds (`FoldBootstrap`); `qv`: per-query
+    rows with a ``fold`` column. Columns `INTERVAL_COLUMNS` + ``n_folds``."""
+    rows = []
+    for (method, scenario, threshold, protocol), g in qv.groupby(GROUP_KEYS, sort=False):
+        cols = _group_cols(g)
+        if not cols:
+            continue
+        iv = fboot.interval(fboot.cubes(g, cols))
+        for j, c in enumerate(cols):
+            metric, k = split_metric(c)
+            rows.append((method, scenario, float(threshold), protocol, metric, k, float(iv["mean"][j]),
+                         float(iv["ci_lo"][j]), float(iv["ci_hi"][j]), int(g["seed"].nunique()),
+                         int(g["fold"].nunique())))
+    return sort_rows(pd.DataFrame(rows, columns=INTERVAL_COLUMNS + ["n_folds"]), SUMMARY_KEYS)
+
+
+def fold_paired_difference(a: pd.DataFrame, b: pd.DataFrame, fboot: FoldBootstrap,
+                           cols: Optional[list[str]] = None) -> pd.DataFrame:
+    """`paired_difference` over folds: mean(a) - mean(b) over the (fold, seed, setting, query) rows the two share,
+    resampled with `FoldBootstrap`. Columns of `paired_difference` + ``n_folds``."""
+    d, cols = _paired(a, b, ["fold", "seed", "setting", "query"], cols)
+    rows = []
+    if len(d) and cols:
+        iv = fboot.interval(fboot.cubes(d, cols))
+        for i, c in enumerate(cols):
+            lo, hi = float(iv["ci_lo"][i]), float(iv["ci_hi"][i])
+            rows.append((*split_metric(c), float(iv["mean"][i]), lo, hi, bool(lo > 0 or hi < 0),
+                         int(d["seed"].nunique()), len(d), int(d["fold"].nunique())))
+    return pd.DataFrame(rows, columns=["metric", "k", "diff", "ci_lo", "ci_hi", "significant", "n_seeds",
+                                       "n_queries", "n_folds"])
+
+
 def rows_of(qv: pd.DataFrame, method: str, scenario: str, threshold: float,
             protocol: Optional[str] = None) -> pd.DataFrame:
     """The per-query rows of one (method, scenario, threshold) group (of one protocol when given)."""
@@ -181,6 +260,16 @@ def intervals(qv: pd.DataFrame, boot: Bootstrap) -> pd.DataFrame:
 
 # ---- paired tests ----------------------------------------------------------------------------------------------
 
+def _paired(a: pd.DataFrame, b: pd.DataFrame, keys: list[str], cols: Optional[list[str]]) -> tuple:
+    """``(per-query differences a - b on the rows the two share (joined on `keys`), the metric columns)``."""
+    cols = [c for c in (_group_cols(a, cols)) if c in _group_cols(b, cols)]
+    j = a[keys + cols].merge(b[keys + cols], on=keys, how="inner", suffixes=("_a", "_b"), validate="one_to_one")
+    d = j[keys].drop(columns="protocol", errors="ignore").copy()
+    for c in cols:
+        d[c] = j[f"{c}_a"].to_numpy(dtype=float) - j[f"{c}_b"].to_numpy(dtype=float)
+    return d, cols
+
+
 def paired_difference(a: pd.DataFrame, b: pd.DataFrame, boot: Bootstrap,
                       cols: Optional[list[str]] = None) -> pd.DataFrame:
     """Paired bootstrap of mean(a) - mean(b) over the (seed, setting, query) triples the two share.
@@ -189,12 +278,8 @@ def paired_difference(a: pd.DataFrame, b: pd.DataFrame, boot: Bootstrap,
     study. Returns one row per metric column: ``metric, k, diff, ci_lo, ci_hi, significant`` (the interval
     excludes 0), and ``n_seeds``, ``n_queries`` of the shared rows.
     """
-    cols = [c for c in (_group_cols(a, cols)) if c in _group_cols(b, cols)]
     keys = ["seed", "setting", "query"] + (["protocol"] if "protocol" in a.columns and "protocol" in b.columns else [])
-    j = a[keys + cols].merge(b[keys + cols], on=keys, how="inner", suffixes=("_a", "_b"), validate="one_to_one")
-    d = j[keys].drop(columns="protocol", errors="ignore").copy()
-    for c in cols:
-        d[c] = j[f"{c}_a"].to_numpy(dtype=float) - j[f"{c}_b"].to_numpy(dtype=float)
+    d, cols = _paired(a, b, keys, cols)
     rows = []
     if len(d) and cols:
         values, nq = boot.cube(d, cols)

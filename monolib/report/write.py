@@ -24,7 +24,7 @@ import pandas as pd
 
 from monolib import io, params, paths
 from monolib.params import PAPER, SIBLINGS
-from monolib.report import claims, figures, results, statistics, tables, training
+from monolib.report import claims, figures, folds, results, statistics, tables, training
 from monolib.retrieval import grid
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,7 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     _write_twins(r)
     _write_light(r)
     _write_depth_scale(r)
+    r.written.update(folds.write(r.study, r.out, n_boot))  # a study with folds by volume: its tables over folds
     log.info("report of %s written to %s", study_name, r.out)
     return r.written
 

@@ -25,6 +25,7 @@ import torch
 
 from monolib import device as devices, methods, paths, versions
 from monolib.data import selection, stage as dataset
+from monolib.data.protocols import family
 from monolib.graphs import stage as scenegraphs
 from monolib.io import (
     atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
@@ -38,7 +39,7 @@ IMAGE_SCENARIO = "rgb"  # image methods use neither the scenario's sources nor t
 
 
 def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None) -> Path:
-    return Path(out_dir) if out_dir else paths.cell_dir(study.name, method, scenario, threshold, seed)
+    return Path(out_dir) if out_dir else paths.cell_dir(study.name, method, scenario, threshold, seed, study.fold)
 
 
 def inputs_key(study: Study, method: str, scenario: str, graph_key: Optional[str] = None,
@@ -70,12 +71,13 @@ def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: i
     """Cache key of a cell: its inputs' key (`inputs_key`, passed on by a caller that holds it), what it
     computes (a graph method's encoder settings, whatever its name; an image method's name), threshold, seed, the
     protocol's draw and the depth of its rankings (not the k of the metrics: any k up to that depth is recomputed
-    from the rankings, `refresh_metrics`), the torch threads, device, deterministic mode, and the version of the
+    from the rankings, `refresh_metrics`), the fold (folds by volume), the torch threads, device, deterministic mode, and the version of the
     cells' code and libraries."""
     graph_method = methods.kind(method, study) == "graph"
     inputs = inputs if inputs is not None else inputs_key(study, method, scenario)
     pr = study.protocol
-    return key_of({"inputs": inputs, "method": None if graph_method else method,
+    folds = {"folds": {"k": pr.folds, "fold": study.fold}} if pr.split == "volumes" else {}  # (release: as always)
+    return key_of({**folds, "inputs": inputs, "method": None if graph_method else method,
                    "encoder": dataclasses.asdict(study.gcn_spec(method)),  # (an image encoder trains on its schedule)
                    "threshold": paths.threshold_json(threshold) if graph_method else None, "seed": int(seed),
                    "protocol": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
@@ -154,10 +156,8 @@ def is_complete(folder: Path, key: Optional[str] = None) -> bool:
     return True
 
 
-def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None,
-             force: bool = False) -> dict:
-    """Run one cell and return its `cell.json` content (read back when the cell is already complete)."""
-    threshold = float(threshold)
+def _check_cell(study: Study, method: str, scenario: str, threshold: float) -> str:
+    """The kind of `method` (graph / image), or one `StudyError` for a cell the study cannot have."""
     if method not in methods.METHODS and method not in study.variants:
         known = sorted(methods.METHODS) + sorted(study.variants)
         raise StudyError(f"method {method!r}: unknown (known: {', '.join(known)})")
@@ -166,6 +166,95 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
         raise StudyError(f"scenario {scenario!r}: not in {study.path} (scenarios: {', '.join(study.scenarios)})")
     if not threshold >= 0:
         raise StudyError(f"threshold {threshold}: expected 0 (no edges), a distance in metres > 0, or inf")
+    return kind
+
+
+def _graph_embeddings(study: Study, method: str, scenario: str, threshold: float, seed: int, graph_key: str,
+                      timings: dict) -> tuple:
+    """Train a graph encoder on the scenario's graphs at `threshold` and embed the test graphs:
+    ``(embeddings, test frames, their settings, extra record fields, history, state dict)``."""
+    t = time.perf_counter()
+    spec = study.gcn_spec(method)
+    graphs = scenegraphs.load(study, scenario, key=graph_key)
+    projection = study.projection(scenario)
+    split = {k: [gcn.encoder_graph(g, threshold, spec, projection) for g in v] for k, v in graphs.items()}
+    timings["graphs_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads,
+                       deterministic=study.deterministic)
+    timings["train_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    emb = gcn.embed(result.model, split["test"]).numpy()
+    state = {k: v.detach().cpu() for k, v in result.model.state_dict().items()}  # loadable on any machine
+    test = split["test"]
+    extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history),
+             "test_nodes_mean": float(np.mean([g.num_nodes for g in test])),
+             "test_edges_mean": float(np.mean([g.edge_index.shape[1] for g in test])),
+             "test_empty_graphs": int(sum(g.num_nodes == 0 for g in test))}
+    if study.fold is not None:  # a fold's volumes on each side, as the cell read them (none on both)
+        extra["volumes"] = {"train": sorted({family(g.setting) for g in graphs["train"] + graphs["val"]}),
+                            "test": sorted({family(g.setting) for g in test})}
+    timings["embed_s"] = time.perf_counter() - t
+    return emb, [g.frame for g in test], [g.setting for g in test], extra, pd.DataFrame(result.history), state
+
+
+def _image_embeddings(study: Study, method: str, seed: int, timings: dict) -> tuple:
+    """An image method's embeddings of the test frames, as `_graph_embeddings` returns them."""
+    ds = dataset.open_dataset(study)
+    sel = selection.select_frames(study, ds, study.gcn.val_settings)
+    timings["graphs_s"] = 0.0
+    t = time.perf_counter()
+    embed = pretrained.embed if method in methods.IMAGENET else baselines.embed
+    emb, extra, history, state = embed(method, study, sel, seed)
+    timings["embed_s"] = time.perf_counter() - t
+    return emb, [f.key for f in sel.test], [f.setting for f in sel.test], extra, history, state
+
+
+def _record(study: Study, method: str, kind: str, key: str, scenario: str, threshold: float, seed: int,
+            evaluated: dict, timings: dict, extra: dict) -> dict:
+    """The `cell.json` content of a computed cell."""
+    sc = study.scenarios.get(scenario)
+    pr = study.protocol
+    graph = bool(sc) and kind == "graph"
+    return {
+        "method": method, "kind": kind, "key": key,
+        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario,
+        "threshold": paths.threshold_json(threshold), "seed": int(seed), "study": study.name,
+        "study_file": study.path, **({"fold": study.fold} if study.fold is not None else {}),
+        "scenario_label": sc.label if sc else "RGB only (no graph)",
+        "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
+        "depth_scale": sc.depth_scale if sc else None,
+        "projection": study.projection(scenario) if graph else None,
+        "colour": study.colour(scenario) if graph else None,
+        "protocol": {"settings": pr.settings, "siblings": pr.siblings, "frames": pr.frames, "queries": pr.queries,
+                     "positives": pr.positives},
+        "protocols": {name: {"settings": r.settings, "draw_seed": r.seed} for name, r in evaluated.items()},
+        "metrics": {name: r.metrics for name, r in evaluated.items()}, "timings": timings, **extra,
+    }
+
+
+def _write_cell(folder: Path, record: dict, evaluated: dict, emb, history, state) -> None:
+    """A computed cell's files, `cell.json` last (its presence marks the cell complete)."""
+    write_text(folder / "rankings.csv", pd.concat([r.rankings for r in evaluated.values()]).to_csv(index=False))
+    write_text(folder / "protocol.csv",
+               pd.concat([r.protocol_table() for r in evaluated.values()]).to_csv(index=False))
+    with atomic_path(folder / "embeddings.npy") as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, np.asarray(emb, dtype=np.float32))
+    if history is not None:
+        write_text(folder / "history.csv", history.to_csv(index=False))
+    if state is not None:
+        save_torch(folder / "model.pt", state)
+    write_json(folder / "cell.json", record)  # last: marks the cell complete
+
+
+def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None,
+             force: bool = False, fold: Optional[int] = None) -> dict:
+    """Run one cell and return its `cell.json` content (read back when the cell is already complete). `fold`: the
+    fold of a study with `protocol.split: volumes` (its graphs, its folder ``...__f<fold>``)."""
+    threshold = float(threshold)
+    study = study.at_fold(fold)
+    kind = _check_cell(study, method, scenario, threshold)
     folder = cell_folder(study, method, scenario, threshold, seed, out_dir)
     graph_key = scenegraphs.scenario_key(study, scenario) if kind == "graph" else None
     inputs = inputs_key(study, method, scenario, graph_key, build=True)  # the graphs' (the frames' for an image one)
@@ -183,71 +272,17 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     (folder / "cell.json").unlink(missing_ok=True)  # (an `out_dir` of the caller's, or `force`): written anew
     torch.set_num_threads(study.threads)
     devices.keep_freed_memory()
-    timings: dict[str, float] = {}
-    history = None
-
-    t = time.perf_counter()
+    timings: dict[str, float] = {}  # graphs_s, train_s (trained graph encoders), embed_s, retrieval_s
     if kind == "graph":
-        spec = study.gcn_spec(method)
-        graphs = scenegraphs.load(study, scenario, key=graph_key)
-        projection = study.projection(scenario)
-        split = {k: [gcn.encoder_graph(g, threshold, spec, projection) for g in v] for k, v in graphs.items()}
-        timings["graphs_s"] = time.perf_counter() - t
-        t = time.perf_counter()
-        result = gcn.train(split["train"], split["val"], spec, seed=seed, threads=study.threads,
-                           deterministic=study.deterministic)
-        history = pd.DataFrame(result.history)
-        timings["train_s"] = time.perf_counter() - t
-        t = time.perf_counter()
-        emb = gcn.embed(result.model, split["test"]).numpy()
-        state = {k: v.detach().cpu() for k, v in result.model.state_dict().items()}  # loadable on any machine
-        test = split["test"]
-        frames, settings = [g.frame for g in test], [g.setting for g in test]
-        extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history),
-                 "test_nodes_mean": float(np.mean([g.num_nodes for g in test])),
-                 "test_edges_mean": float(np.mean([g.edge_index.shape[1] for g in test])),
-                 "test_empty_graphs": int(sum(g.num_nodes == 0 for g in test))}
+        emb, frames, settings, extra, history, state = _graph_embeddings(study, method, scenario, threshold, seed,
+                                                                         graph_key, timings)
     else:
-        ds = dataset.open_dataset(study)
-        sel = selection.select_frames(study, ds, study.gcn.val_settings)
-        timings["graphs_s"] = 0.0
-        t = time.perf_counter()
-        embed = pretrained.embed if method in methods.IMAGENET else baselines.embed
-        emb, extra, history, state = embed(method, study, sel, seed)
-        frames, settings = [f.key for f in sel.test], [f.setting for f in sel.test]
-    timings["embed_s"] = time.perf_counter() - t
-
+        emb, frames, settings, extra, history, state = _image_embeddings(study, method, seed, timings)
     t = time.perf_counter()
     evaluated = evaluate.evaluate_protocols(emb, frames, settings, study.protocol, seed)
     timings["retrieval_s"] = time.perf_counter() - t
-
-    sc = study.scenarios.get(scenario)
-    record = {
-        "method": method, "kind": kind, "key": key,
-        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario, "threshold": paths.threshold_json(threshold),
-        "seed": int(seed), "study": study.name, "study_file": study.path,
-        "scenario_label": sc.label if sc else "RGB only (no graph)",
-        "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
-        "depth_scale": sc.depth_scale if sc else None,
-        "projection": study.projection(scenario) if sc and kind == "graph" else None,
-        "colour": study.colour(scenario) if sc and kind == "graph" else None,
-        "protocol": {"settings": study.protocol.settings, "siblings": study.protocol.siblings,
-                     "frames": study.protocol.frames, "queries": study.protocol.queries,
-                     "positives": study.protocol.positives},
-        "protocols": {name: {"settings": r.settings, "draw_seed": r.seed} for name, r in evaluated.items()},
-        "metrics": {name: r.metrics for name, r in evaluated.items()}, "timings": timings, **extra,
-    }
-    write_text(folder / "rankings.csv", pd.concat([r.rankings for r in evaluated.values()]).to_csv(index=False))
-    write_text(folder / "protocol.csv",
-               pd.concat([r.protocol_table() for r in evaluated.values()]).to_csv(index=False))
-    with atomic_path(folder / "embeddings.npy") as tmp:
-        with open(tmp, "wb") as f:
-            np.save(f, np.asarray(emb, dtype=np.float32))
-    if history is not None:
-        write_text(folder / "history.csv", history.to_csv(index=False))
-    if state is not None:
-        save_torch(folder / "model.pt", state)
-    write_json(folder / "cell.json", record)  # last: marks the cell complete
+    record = _record(study, method, kind, key, scenario, threshold, seed, evaluated, timings, extra)
+    _write_cell(folder, record, evaluated, emb, history, state)
     return record
 
 

@@ -6,7 +6,8 @@ runner runs exactly those.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Optional
 
 from monolib import methods, paths
 from monolib.params import Study
@@ -18,14 +19,16 @@ class CellSpec:
     scenario: str
     threshold: float
     seed: int
+    fold: Optional[int] = None  # with `protocol.split: volumes`: the fold tested (`Study.at_fold`)
 
     @property
     def name(self) -> str:
-        return f"{self.method}/{self.scenario}__t{paths.threshold_tag(self.threshold)}__s{self.seed}"
+        return f"{self.method}/{paths.cell_name(self.scenario, self.threshold, self.seed, self.fold)}"
 
 
 def grid(study: Study) -> list[CellSpec]:
-    """Every cell of the study: graph methods x scenarios x thresholds x seeds, image methods x seeds."""
+    """Every cell of the study: graph methods x scenarios x thresholds x seeds, image methods x seeds; each of them
+    once per fold with `protocol.split: volumes` (fold-major, so that a fold's cells run in a row)."""
     cells = []
     for m in study.methods + list(study.variants):
         if methods.kind(m, study) == "image":
@@ -37,9 +40,11 @@ def grid(study: Study) -> list[CellSpec]:
         for sc in scenarios:
             thresholds = (v.thresholds if v and v.thresholds else None) or study.scenarios[sc].thresholds or study.thresholds
             cells += [CellSpec(m, sc, t, s) for t in thresholds for s in study.seeds]
-    return cells
+    return [replace(c, fold=f) for f in study.folds() for c in cells]
 
 
 def names(study: Study) -> set[str]:
-    """The cell folder names of the grid (``method/scenario__t<t>__s<seed>``, relative to ``cells/``)."""
-    return {c.name for c in grid(study)}
+    """The cell folder names of the grid's release split (``method/scenario__t<t>__s<seed>``, relative to
+    ``cells/``): what the report's tables read. The folds' cells (``...__f<fold>``) have their own tables
+    (`monolib.report.folds`)."""
+    return {c.name for c in grid(study) if c.fold is None}

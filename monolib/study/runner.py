@@ -33,7 +33,7 @@ REPORT_NOTEBOOK = paths.NOTEBOOKS / "report.ipynb"
 
 def same_graphs(study: Study, cells: list[CellSpec], scenario_keys: dict[str, str] | None = None) -> dict[str, CellSpec]:
     """{cell name: source cell} for the graph cells whose scene graphs equal those of a smaller threshold of the
-    same method, scenario and seed: no pair of nodes, in any frame of any split, has a length between the two
+    same method, scenario, seed and fold: no pair of nodes, in any frame of any split, has a length between the two
     thresholds (edges only grow with the threshold, so equal edge totals mean equal graphs). Such a cell is the same
     computation as its source (same graphs, encoder, seed), so the runner copies the source's results into it.
     With predicted depth every pair is often closer than 5 m, and 5, 10 and inf give one graph set.
@@ -43,15 +43,17 @@ def same_graphs(study: Study, cells: list[CellSpec], scenario_keys: dict[str, st
     groups: dict[tuple, list[CellSpec]] = {}
     for c in cells:
         if methods.kind(c.method, study) == "graph":
-            groups.setdefault((c.method, c.scenario, c.seed), []).append(c)
-    lengths: dict[str, torch.Tensor] = {}
+            groups.setdefault((c.method, c.scenario, c.seed, c.fold), []).append(c)
+    lengths: dict[tuple, torch.Tensor] = {}
     out = {}
-    for (_, scenario, _), group in groups.items():
-        if scenario not in lengths:
-            graphs = scenegraphs.load(study, scenario, key=(scenario_keys or {}).get(scenario))
-            lengths[scenario] = torch.cat([g.pair_len for split in graphs.values() for g in split] + [torch.zeros(0)])
+    for (_, scenario, _, fold), group in groups.items():
+        if (scenario, fold) not in lengths:
+            graphs = scenegraphs.load(study.at_fold(fold), scenario,
+                                      key=(scenario_keys or {}).get(scenario) if fold is None else None)
+            lengths[scenario, fold] = torch.cat([g.pair_len for split in graphs.values() for g in split]
+                                                + [torch.zeros(0)])
         by_threshold = {float(c.threshold): c for c in group}
-        for t, source in scenegraphs.identical_thresholds(lengths[scenario], by_threshold).items():
+        for t, source in scenegraphs.identical_thresholds(lengths[scenario, fold], by_threshold).items():
             out[by_threshold[t].name] = by_threshold[source]
     return out
 
@@ -183,9 +185,80 @@ def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int
         env = {k: v for k, v in env.items() if k != cluster.FINGERPRINT_ENV}
     os.environ.update(env)
     execute(CELL_NOTEBOOK, Path(output), {"study": study_file, "method": cell.method, "scenario": cell.scenario,
-                                          "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": ""},
+                                          "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": "",
+                                          "fold": -1 if cell.fold is None else int(cell.fold)},
             timeout, warm=kernels.warm_enabled(), env=env)
     return time.perf_counter() - t0
+
+
+def _cell_keys(study: Study, cells: list[CellSpec]) -> tuple[dict[str, str], dict]:
+    """``({cell name: its key}, {fold: the graph stage's keys})`` of the grid's cells; the graphs of each fold are
+    built first (a cell's key holds the frames its graphs could not read)."""
+    data_key = dataset.dataset_key(study)  # the upstream stages' keys, once: each cell's key is its inputs' + its own
+    graph_cells = {(c.fold, c.scenario) for c in cells if methods.kind(c.method, study) == "graph"}
+    folds = sorted({f for f, _ in graph_cells}, key=lambda f: -1 if f is None else f)
+    scenario_keys = {f: scenegraphs.scenario_keys(study.at_fold(f), data_key) for f in folds}
+    inputs = {(f, sc): graph_inputs(study.at_fold(f), sc, scenario_keys[f][sc], build=True)  # + unread frames
+              for f, sc in sorted(graph_cells, key=lambda fs: (-1 if fs[0] is None else fs[0], fs[1]))}
+    image_inputs = {m: features.features_key(study, data_key) if m in methods.IMAGENET else data_key
+                    for m in {c.method for c in cells}}
+    keys = {c.name: cell_key(study.at_fold(c.fold), c.method, c.scenario, c.threshold, c.seed,
+                             inputs[c.fold, c.scenario] if methods.kind(c.method, study) == "graph"
+                             else image_inputs[c.method])
+            for c in cells}
+    return keys, scenario_keys
+
+
+def _run_in_process(study: Study, run: list[CellSpec], progress: bool, failed: list, seconds: dict) -> None:
+    """`run_cell` for each cell of `run`, one after the other in this process."""
+    for c in tqdm(run, desc="cells", unit="cell", disable=not progress):
+        try:
+            t = time.perf_counter()
+            run_cell(study, c.method, c.scenario, c.threshold, c.seed, fold=c.fold)
+            seconds[c.name] = time.perf_counter() - t
+        except Exception as exc:
+            failed.append((c.name, exc))
+            log.error("cell %s failed: %s: %s", c.name, type(exc).__name__, exc)
+
+
+def _run_notebooks(study: Study, run: list[CellSpec], jobs: int, progress: bool, scheduler: str | None,
+                   failed: list, seconds: dict) -> None:
+    """Each cell of `run` as a notebook, on `jobs` local workers or the Dask scheduler at `scheduler`."""
+    env = cluster.task_environment()
+    if scheduler:  # each task checks, on its worker and before it computes, what decides its numbers
+        import json
+
+        env[cluster.FINGERPRINT_ENV] = json.dumps(cluster.fingerprint(str(study.path)), sort_keys=True)
+    with cluster.Workers(study, jobs, scheduler) as workers:
+        print(f"cells on {workers.describe()}", flush=True)
+        futures = {workers.submit(c.name, run_cell_notebook, study.path, c,
+                                  str(_cell_notebook_path(study.name, c.name)), study.cell_timeout, env): c
+                   for c in run}
+        bar = tqdm(total=len(run), desc="cells", unit="cell", disable=not progress)
+        for fut in as_completed(futures):
+            try:
+                seconds[futures[fut].name] = fut.result()
+            except Exception as exc:
+                failed.append((futures[fut].name, exc))
+                log.error("cell %s failed: %s: %s", futures[fut].name, type(exc).__name__, exc)
+            bar.update(1)
+        bar.close()
+
+
+def _grid_failures(study: Study, failed: list, run: list[CellSpec], n_cells: int, in_process: bool) -> None:
+    """One `NotebookFailed` listing the failed cells (nothing when none failed)."""
+    if not failed:
+        return
+    ran, lines = {c.name for c in run}, []
+    for name, exc in failed:
+        if name not in ran:  # a copy whose source cell failed
+            lines.append(f"{name}: {exc}")
+        elif in_process:
+            lines.append(name)
+        else:
+            lines.append(f"{name} (executed notebook: {_cell_notebook_path(study.name, name)})")
+    raise NotebookFailed(f"{len(failed)} of {n_cells} cells failed (their errors are above):"
+                         + "".join(f"\n  {ln}" for ln in lines) + "\nre-run to retry only these")
 
 
 def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_process: bool = False,
@@ -193,65 +266,32 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
     """Run every cell that has no results yet through papermill: in `jobs` local worker processes, or as tasks of
     the Dask scheduler at `scheduler` (`monolib.study.cluster`; its workers share the runs folder). `in_process`:
     `monolib.retrieval.cell.run_cell` one cell after the other in this process, no kernel per cell: what `prepare` does for
-    a notebook; the same function computes the same files."""
+    a notebook; the same function computes the same files. With folds by volume every fold's cells are in the grid
+    (`monolib.retrieval.grid.grid`), each in its own folder."""
 
     def folder(c: CellSpec) -> Path:
-        return paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed)
+        return paths.cell_dir(study.name, c.method, c.scenario, c.threshold, c.seed, c.fold)
 
     cells = grid(study)
-    data_key = dataset.dataset_key(study)  # the upstream stages' keys, once: each cell's key is its inputs' + its own
-    scenario_keys = scenegraphs.scenario_keys(study, data_key) if study.graph_methods() else {}
-    graph_cells = {c.scenario for c in cells if methods.kind(c.method, study) == "graph"}
-    inputs = {sc: graph_inputs(study, sc, scenario_keys[sc], build=True) for sc in sorted(graph_cells)}  # + unread
-    image_inputs = {m: features.features_key(study, data_key) if m in methods.IMAGENET else data_key
-                    for m in {c.method for c in cells}}
-    keys = {c.name: cell_key(study, c.method, c.scenario, c.threshold, c.seed,
-                             inputs[c.scenario] if methods.kind(c.method, study) == "graph" else image_inputs[c.method])
-            for c in cells}
+    keys, scenario_keys = _cell_keys(study, cells)
     records = {c.name: claim(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
     todo = [c for c in cells if records[c.name] is None]
     for c in cells:
         if records[c.name] is not None:  # the reported k may have changed: from the rankings, no training
             refresh_metrics(folder(c), study, records[c.name])
-    copies = same_graphs(study, cells, scenario_keys) if todo else {}
+    copies = same_graphs(study, cells, scenario_keys.get(None)) if todo else {}
     run = longest_first([c for c in todo if c.name not in copies])
     log.debug("grid: %d cells, %d done, %d to run, %d to copy", len(cells), len(cells) - len(todo), len(run),
               len(todo) - len(run))
     print(f"grid: {len(cells)} cells, {len(cells) - len(todo)} already complete, {len(todo)} to run "
           f"({len(todo) - len(run)} of them have the graphs of a smaller threshold: copied from it)", flush=True)
-    jobs = jobs or study.jobs
-    failed = []
+    failed: list = []
     seconds: dict[str, float] = {}  # wall seconds of each cell run (a notebook: kernel start included)
     t0 = time.perf_counter()
     if run and in_process:
-        for c in tqdm(run, desc="cells", unit="cell", disable=not progress):
-            try:
-                t = time.perf_counter()
-                run_cell(study, c.method, c.scenario, c.threshold, c.seed)
-                seconds[c.name] = time.perf_counter() - t
-            except Exception as exc:
-                failed.append((c.name, exc))
-                log.error("cell %s failed: %s: %s", c.name, type(exc).__name__, exc)
+        _run_in_process(study, run, progress, failed, seconds)
     elif run:
-        env = cluster.task_environment()
-        if scheduler:  # each task checks, on its worker and before it computes, what decides its numbers
-            import json
-
-            env[cluster.FINGERPRINT_ENV] = json.dumps(cluster.fingerprint(str(study.path)), sort_keys=True)
-        with cluster.Workers(study, jobs, scheduler) as workers:
-            print(f"cells on {workers.describe()}", flush=True)
-            futures = {workers.submit(c.name, run_cell_notebook, study.path, c,
-                                      str(_cell_notebook_path(study.name, c.name)), study.cell_timeout, env): c
-                       for c in run}
-            bar = tqdm(total=len(run), desc="cells", unit="cell", disable=not progress)
-            for fut in as_completed(futures):
-                try:
-                    seconds[futures[fut].name] = fut.result()
-                except Exception as exc:
-                    failed.append((futures[fut].name, exc))
-                    log.error("cell %s failed: %s: %s", futures[fut].name, type(exc).__name__, exc)
-                bar.update(1)
-            bar.close()
+        _run_notebooks(study, run, jobs or study.jobs, progress, scheduler, failed, seconds)
     for c in todo:
         if c.name in copies:
             source = copies[c.name]
@@ -259,17 +299,7 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
                 copy_cell(folder(source), folder(c), c.threshold, source.name, keys[c.name])
             else:
                 failed.append((c.name, f"its source cell {source.name} did not finish"))
-    if failed:
-        ran, lines = {c.name for c in run}, []
-        for name, exc in failed:
-            if name not in ran:  # a copy whose source cell failed
-                lines.append(f"{name}: {exc}")
-            elif in_process:
-                lines.append(name)
-            else:
-                lines.append(f"{name} (executed notebook: {_cell_notebook_path(study.name, name)})")
-        raise NotebookFailed(f"{len(failed)} of {len(cells)} cells failed (their errors are above):"
-                             + "".join(f"\n  {ln}" for ln in lines) + "\nre-run to retry only these")
+    _grid_failures(study, failed, run, len(cells), in_process)
     return {"cells": len(cells), "ran": len(todo), "seconds": time.perf_counter() - t0, "cell_seconds": seconds}
 
 
@@ -291,6 +321,19 @@ def prepare(study: Study | str, scenarios: list[str] | None = None, cells: bool 
     return study
 
 
+def unbuilt_graphs(study: Study, scenarios: list[str]) -> dict:
+    """``{fold: the scenarios of `scenarios` whose graphs of that fold are not built yet}`` (fold None: the
+    release split), folds with nothing to build left out."""
+    out = {}
+    for fold in study.folds() if scenarios else []:
+        at = study.at_fold(fold)
+        keys = scenegraphs.scenario_keys(at)
+        todo = [n for n in scenarios if not scenegraphs.graphs_path(at, n, keys[n]).exists()]
+        if todo:
+            out[fold] = todo
+    return out
+
+
 def stages(study: Study, scenarios: list[str] | None = None, progress: bool = True, figures: bool = False,
            times: dict | None = None) -> None:
     """The stages before the cells, in the order data flows, each skipped when its files exist: the dataset, the
@@ -310,9 +353,9 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
         raise StudyError(f"scenario {', '.join(map(repr, unknown))}: not in {study.path} "
                          f"(scenarios: {', '.join(study.scenarios)}, or {IMAGE_SCENARIO} for an image method)")
     wanted = [n for n in names if n in study.scenarios] if study.graph_methods() else []
-    keys = scenegraphs.scenario_keys(study) if wanted else {}
-    todo = [n for n in wanted if not scenegraphs.graphs_path(study, n, keys[n]).exists()]
-    sources = {s for n in (wanted if figures else todo) for s in (study.scenarios[n].depth, study.scenarios[n].semantic)}
+    todo = unbuilt_graphs(study, wanted)
+    built = wanted if figures else sorted({n for ns in todo.values() for n in ns})
+    sources = {s for n in built for s in (study.scenarios[n].depth, study.scenarios[n].semantic)}
     models = [] if study.graphs_root else [m for m in study.model_names() if m in sources]
     if models:
         perception.check_weights(study)  # before any work, the rendering included
@@ -347,9 +390,11 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
     t = time.perf_counter()
     if wanted:
         say(f"[3/5] graphs: {len(wanted)} scenarios")
-        if todo:
-            scenegraphs.build_all(study, todo, progress=progress)
-        if figures:
+        for fold, unbuilt in todo.items():
+            scenegraphs.build_all(study.at_fold(fold), unbuilt, progress=progress)
+        if figures and study.folds() != [None]:
+            say("[3/5] graph sizes and fidelity: per fold, in the report's folds.md")
+        elif figures:
             graph_sizes.write_graph_sizes(study)  # graph_sizes.md / .csv: nodes and edges per scenario and threshold
             fidelity.write(study)  # fidelity.md / .csv: the ground-truth graphs beside real Hypersim's statistics
     times["graphs_s"] = time.perf_counter() - t
@@ -378,7 +423,7 @@ def run(study: Study, jobs: int | None = None, progress: bool = True, scheduler:
 
 
 def _run(study: Study, jobs: int | None, progress: bool, scheduler: str | None) -> dict:
-    check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})
+    check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir", "fold"})
     check_notebook_parameters(REPORT_NOTEBOOK, {"study"})
     if scheduler:
         cluster.check(scheduler, study)

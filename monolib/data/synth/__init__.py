@@ -6,13 +6,15 @@ furniture catalogue (object types and their dimensions), the materials, doors an
 lighting and viewpoints -- the paper's "two neighbouring offices". Volumes start at 900 so a synthetic setting can
 never be confused with a real Hypersim scene.
 
-What makes it look like Hypersim where place recognition is decided (../shared/docs/real-hypersim-statistics.md;
-`monolib.graphs.fidelity` measures it for every study, `figures/fidelity.md`): each family has its own paints, woods,
+What makes it look like Hypersim where place recognition is decided (real Hypersim's statistics are in
+`monolib/resources/fidelity_reference.csv`; `monolib.graphs.fidelity` measures them for every study,
+`figures/fidelity.md`): each family has its own paints, woods,
 tiles and fabrics drawn from a wide continuous space, so walls and floors of two places differ more than one wall
 seen twice; surfaces carry clutter (vases, bottles, bowls, books, table lamps), floors carry plants, some families
 have skirting boards and pendant lamps. The rooms have real Hypersim's depth and light: rooms of 5 to 10 m a
 side (bathrooms 3-5 m), most with the next room behind an opening (an open-plan dining or kitchen area, often an L,
-or a room behind a doorway: `rooms._make_annex`); large windows that show the outside 10 to 80 m away (ground, facades, trees; a flat's street below: unlabelled geometry, the sky no depth); the
+or a room behind a doorway: `rooms._make_annex`); large windows that show the outside 10 to 80 m
+away (ground, facades, trees; a flat's street below: unlabelled geometry, the sky no depth); the
 cameras walk as Hypersim's (`cameras.make_trajectories`: an artist's viewpoint across the room, then scored
 random-walk steps); the light is daylight through the windows (the sky as an area light at each window, the sun's
 patches), ceiling fixtures and lamps with inverse-square fall-off and shadows, corners darker and light bounced off
@@ -26,8 +28,8 @@ same, bit for bit, whatever SIMD kernels numpy and OpenBLAS pick on the CPU (`te
 stage does not use torch.
 
 Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to
-the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim
-(../shared/docs/hypersim-format.md sections 1, 1a, 1b, 2, 3, 6, 7).
+the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim's
+file layout (`monolib.data.hypersim` reads it; docs/data.md).
 
 The modules, in the order they build on each other (each imports only those above it):
 

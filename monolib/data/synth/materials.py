@@ -34,7 +34,7 @@ def _family_materials(rng: np.random.Generator, room: str) -> dict[str, Material
 
     Every setting of the family (siblings included) uses exactly these; two families almost never share a wall or
     floor colour. Real Hypersim rooms differ this way: between two places the wall and floor colours spread 2.6
-    times more than between two frames of one place (../shared/docs/real-hypersim-statistics.md).
+    times more than between two frames of one place (`monolib/resources/fidelity_reference.csv`).
     """
     u = rng.uniform
 
