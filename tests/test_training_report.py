@@ -33,3 +33,22 @@ def test_a_study_that_meets_its_targets_says_so():
     c = cells([("layout", "s2", math.inf, s, 12 + s, 18 + s, 80.0 + s) for s in range(5)])
     md = training.markdown(training.training_table(c), "toy")
     assert "1 of 1 cells." in md and "`layout` 0.00." in md and "(over" not in md
+
+
+def test_cells_are_read_in_the_percent_they_hold(tmp_path, monkeypatch):
+    """A cell.json holds recall@1 in %, as the tables print it; the training table reads it as it is, so its means
+    and spreads are on the tables' scale (a cell copied from a smaller threshold counts once)."""
+    from monolib import io, paths
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path)
+    for seed, recall in enumerate([70.0, 74.0]):
+        cell = {"method": "gcn", "scenario": "s1", "threshold": 1.0, "seed": seed, "best_epoch": 12, "epochs_run": 18,
+                "metrics": {"paper": {"recall@1": recall}}}
+        io.write_json(tmp_path / "study" / "cells" / "gcn" / f"s1__t1__s{seed}" / "cell.json", cell)
+    io.write_json(tmp_path / "study" / "cells" / "gcn" / "s1__t2__s0" / "cell.json",
+                  {"method": "gcn", "scenario": "s1", "threshold": 2.0, "seed": 0, "best_epoch": 12, "epochs_run": 18,
+                   "same_graphs_as": "s1__t1__s0", "metrics": {"paper": {"recall@1": 70.0}}})
+    read = training.training_cells("study")
+    assert sorted(read["recall@1"]) == [70.0, 74.0]
+    row = training.training_table(read).iloc[0]
+    assert row["recall@1_mean"] == pytest.approx(72.0) and row["recall@1_seed_sd"] == pytest.approx(2 ** 1.5)

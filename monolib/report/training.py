@@ -41,7 +41,7 @@ def training_cells(study_name: str, grid: Optional[Collection[str]] = None) -> p
         if cell.get("best_epoch") is None or cell.get("same_graphs_as"):
             continue
         rows.append((cell["method"], cell["scenario"], threshold_value(cell["threshold"]), int(cell["seed"]),
-                     int(cell["best_epoch"]), int(cell["epochs_run"]), 100 * cell_metrics(cell)[PAPER]["recall@1"]))
+                     int(cell["best_epoch"]), int(cell["epochs_run"]), cell_metrics(cell)[PAPER]["recall@1"]))
     return pd.DataFrame(rows, columns=["method", "scenario", "threshold", "seed", "best_epoch", "epochs_run",
                                        "recall@1"])
 
