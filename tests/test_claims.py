@@ -105,6 +105,19 @@ def test_a_claim_on_cells_the_study_lacks_names_them(toy, tmp_path):
         claims.evaluate(claims.load("toy", path), qv, iv, boots, str(path))
 
 
+def test_a_study_that_runs_part_of_the_grid_tests_the_claims_it_ran(toy, tmp_path, capsys):
+    """A study file that runs part of a study's grid under its name (a subset, a test): the claims on its cells are
+    evaluated, those on cells outside its grid are left out and named, and none of them is an error."""
+    qv, iv, boots = toy
+    path = claims_file(tmp_path, [claim("ran", A, B, "above"), claim("not-ran", {**A, "threshold": 5}, B, "above")])
+    out = tmp_path / "figures"
+    written = claims.write("toy", out, qv, iv, boots, path, grid={"good/s1__t0__s0", "bad/s1__t0__s0"})
+    table = pd.read_csv(written["claims_csv"])
+    assert list(table["id"]) == ["ran"]
+    assert "not evaluated: not-ran" in capsys.readouterr().out
+    assert claims.write("toy", out, qv, iv, boots, path, grid={"bad/s1__t0__s0"}) == {}
+
+
 def test_every_committed_claim_names_cells_of_its_studys_grid():
     data = yaml.safe_load(claims.CLAIMS_FILE.read_text())
     assert {"quick", "smoke"} <= set(data)

@@ -242,7 +242,7 @@ def test_the_layout_encoder_localizes_a_frame_of_its_database(smoke_study, tmp_p
     assert first["distance"] < 0.5 * second["distance"], (first, second)
 
 
-def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
+def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path, capsys, monkeypatch):
     import cv2
 
     from monolib.data import selection, stage as dataset
@@ -276,20 +276,23 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path):
     first, second = json.loads(out.stdout)[0]["matches"][:2]
     assert first["frame"] == frame.key and first["setting"] == frame.setting, first
     assert first["distance"] < 0.5 * second["distance"], (first, second)
-    table = subprocess.run(MONOLIB + ["localize", str(png), "--db", str(db)], env=ENV, capture_output=True, text=True)
-    assert table.returncode == 0 and "1. ai_" in table.stdout
-    # one clear error each: a wrong path, an unreadable image, a database made by other models
+    # the printed table and one clear error each (a wrong path, an unreadable image, a database made by other
+    # models), through the command's own entry point in this process
+    from monolib import cli
+
+    capsys.readouterr()
+    assert cli.main(["localize", str(png), "--db", str(db)]) == 0 and "1. ai_" in capsys.readouterr().out
+    monkeypatch.chdir(tmp_path)
     bad = tmp_path / "broken.jpg"
     bad.write_bytes(b"not an image")
     for args, message in ((["nope.png"], "nope.png: image file not found"), ([str(bad)], "broken.jpg: not a readable image")):
-        out = subprocess.run(MONOLIB + ["localize", *args, "--db", str(db)], env=ENV, capture_output=True, text=True,
-                             cwd=tmp_path)
-        assert out.returncode == 2 and message in out.stderr, out.stderr[-2000:]
+        assert cli.main(["localize", *args, "--db", str(db)]) == 2
+        err = capsys.readouterr().err
+        assert message in err, err[-2000:]
     meta = json.loads((db / "meta.json").read_text())
     meta["models"]["depth"] = "depth_a-000000000000"
     (db / "meta.json").write_text(json.dumps(meta))
-    out = subprocess.run(MONOLIB + ["localize", str(png), "--db", str(db)], env=ENV, capture_output=True, text=True)
-    assert out.returncode == 2 and "made by models" in out.stderr
+    assert cli.main(["localize", str(png), "--db", str(db)]) == 2 and "made by models" in capsys.readouterr().err
 
 
 def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_path, capsys):

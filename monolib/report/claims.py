@@ -24,7 +24,7 @@ import math
 import string
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Collection, Optional
 
 import pandas as pd
 import yaml
@@ -197,11 +197,26 @@ def markdown(table: pd.DataFrame, study_name: str, n_boot: int = statistics.N_BO
     return "\n".join(lines) + "\n"
 
 
+def in_grid(claim: Claim, grid: Collection[str]) -> bool:
+    """Whether both cells of `claim` are cells of a grid (cell names ``method/scenario__t<t>__s<seed>``)."""
+    prefixes = {f"{c.method}/{c.scenario}__t{paths.threshold_tag(c.threshold)}__s" for c in (claim.a, claim.b)}
+    return all(any(name.startswith(p) for name in grid) for p in prefixes)
+
+
 def write(study_name: str, out: Path, qv: Optional[pd.DataFrame], iv: Optional[pd.DataFrame], boots: dict,
-          path: Path = CLAIMS_FILE, n_boot: int = statistics.N_BOOT) -> dict[str, Path]:
+          path: Path = CLAIMS_FILE, n_boot: int = statistics.N_BOOT,
+          grid: Optional[Collection[str]] = None) -> dict[str, Path]:
     """Evaluate the claims of `study_name` and write ``claims.md`` and ``claims.csv`` into `out`; ``{}`` when the
-    study has no claims. Raises `ClaimsError` when it has claims but no per-query rankings to test them on."""
+    study has no claims. With `grid` (the study's cell names), a claim on a cell outside the grid is left out and
+    said so: a study file that runs a part of a study's grid under its name (a test, a subset) tests what it ran.
+    Raises `ClaimsError` when it has claims but no per-query rankings to test them on."""
     claims = load(study_name, path)
+    if grid is not None:
+        outside = [c.id for c in claims if not in_grid(c, grid)]
+        if outside:
+            print(f"{study_name}: {len(outside)} claims on cells outside this grid not evaluated: "
+                  f"{', '.join(outside)}")
+        claims = [c for c in claims if in_grid(c, grid)]
     if not claims:
         return {}
     if qv is None or iv is None:

@@ -97,7 +97,7 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     r = _Report(study_name, study if study is not None else _load_study(study_name), n_boot, method)
     _write_results(r, scenario_labels)
     _write_intervals(r)
-    r.written.update(claims.write(study_name, r.out, r.qv_all, r.iv_all, r.boots, n_boot=n_boot))
+    r.written.update(claims.write(study_name, r.out, r.qv_all, r.iv_all, r.boots, n_boot=n_boot, grid=r.cells))
     _write_tables(r, rgb_of)
     _write_protocols(r)
     if r.qv is None:
