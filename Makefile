@@ -74,7 +74,7 @@ zoo-pilot: install
 test: install
 	$(PY) -m pytest tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
 
-# the quick loop: the unit tests, without the end-to-end runs (the smoke study, papermill, nbval) marked slow
+# the quick loop: the unit tests, without the tests marked slow (the smoke study, papermill, nbval, network training)
 test-fast: install
 	$(PY) -m pytest tests -m "not slow" -p no:cacheprovider -q --durations=10
 

@@ -153,6 +153,7 @@ def test_resnet50_original_layout_loads(tmp_path, prefix):
     assert not torch.allclose(out, other)
 
 
+@pytest.mark.slow
 def test_resnext101_original_layout_loads(tmp_path):
     state = random_original_state(depth.build_leres("resnext101_32x8d"), "resnext101_32x8d")
     # Resnext_torch.py: width = planes * 8/64 * 32 -> 256 in layer1, grouped 3x3 conv (32 groups)

@@ -134,6 +134,7 @@ def test_every_committed_claim_names_cells_of_its_studys_grid():
 
 # ---- the smoke study's files ----------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_smoke_claims_are_written_with_the_tables_numbers(smoke_study):
     fig = paths.figures_dir("smoke")
     table = claims.read(fig / "claims.csv")
@@ -150,6 +151,7 @@ def test_smoke_claims_are_written_with_the_tables_numbers(smoke_study):
     assert all(f"| {c.id} |" in md for c in stated)
 
 
+@pytest.mark.slow
 def test_verify_against_the_runs_own_figures_passes(smoke_study, tmp_path):
     against = shutil.copytree(paths.figures_dir("smoke"), tmp_path / "committed")
     out = subprocess.run([sys.executable, "-m", "monolib.cli", "verify", "smoke", "--against", str(against)],
@@ -159,6 +161,7 @@ def test_verify_against_the_runs_own_figures_passes(smoke_study, tmp_path):
     assert "PROBLEM" not in out.stdout and "verify: every claim holds" in out.stdout
 
 
+@pytest.mark.slow
 def test_verify_names_a_mean_outside_its_committed_interval(smoke_study, tmp_path):
     against = shutil.copytree(paths.figures_dir("smoke"), tmp_path / "committed")
     iv = pd.read_csv(against / "intervals.csv")
@@ -178,6 +181,7 @@ def test_verify_names_a_mean_outside_its_committed_interval(smoke_study, tmp_pat
     assert any(line.startswith("moved within its interval:") for line in v.info)
 
 
+@pytest.mark.slow
 def test_verify_names_a_claim_whose_relation_flipped(smoke_study, tmp_path):
     against = shutil.copytree(paths.figures_dir("smoke"), tmp_path / "committed")
     data = yaml.safe_load(claims.CLAIMS_FILE.read_text())

@@ -124,6 +124,7 @@ print(faults, digest)
 
 
 @pytest.mark.skipif(__import__("platform").libc_ver()[0] != "glibc", reason="glibc's mallopt only")
+@pytest.mark.slow
 def test_freed_tensors_are_reused_and_compute_the_same():
     """`keep_freed_memory`: three training steps of a small conv net fault in a tenth of the pages or fewer once two
     steps have run (without it, every step maps its activations again), and end with the same weights, bit for

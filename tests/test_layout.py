@@ -79,6 +79,7 @@ def test_wing(module, expected):
     assert wing(module) == expected
 
 
+@pytest.mark.slow
 def test_a_cell_computes_each_upstream_key_once(smoke_study, tmp_path):
     """Following the study through `run_cell` of a scenario of predicted depth and semantics: the graph stage's key
     is computed once and passed on (to the cell's key and to the graph stage's loader), and it computes the data

@@ -105,6 +105,7 @@ def _falls(losses):
     return float(np.mean(losses[-k:])) < float(np.mean(losses[:k]))
 
 
+@pytest.mark.slow
 def test_segmentation_loss_falls(tiny_study):
     from monolib.perception import segmentation
 
@@ -120,6 +121,7 @@ def test_segmentation_loss_falls(tiny_study):
     assert pred.dtype == np.int16 and pred.shape == (2, H, W) and pred.min() >= 1 and pred.max() <= 40
 
 
+@pytest.mark.slow
 def test_depth_loss_falls(tiny_study):
     from monolib.perception import depth
 
@@ -172,6 +174,7 @@ def test_metrics_on_degenerate_frames():
     assert np.isnan(evaluate_depth([(nan, d)])["abs_rel"])
 
 
+@pytest.mark.slow
 def test_run_caches_and_round_trips(tiny_study):
     from monolib.perception import depth, segmentation, stage as perception
 
@@ -228,6 +231,7 @@ def _png_is_a_picture(path: Path, min_size: tuple[int, int]) -> np.ndarray:
     return rgb
 
 
+@pytest.mark.slow
 def test_figures(tiny_study):
     """Each figure is a real picture (a PNG of a sensible size, not blank), and draws the study's data: the training
     curves of every trained model, and Figures 3 and 4 the test frames, their ground truth and the predictions."""
@@ -346,6 +350,7 @@ def perception_path(study, name, frame):
     return perception.prediction_path(study, name, frame)
 
 
+@pytest.mark.slow
 def test_loader_workers_change_no_prediction(tiny_study):
     """Frames read by 2 worker processes give the predictions of frames read in the main process, bit for bit, each
     written to its own frame's file (36 frames in batches of 5: a last batch of 1)."""

@@ -13,6 +13,9 @@ from monolib.params import StudyError, load_study
 from monolib.perception import stage as perception, zoo
 
 
+pytestmark = pytest.mark.slow  # the zoo trains networks on the smoke data
+
+
 @pytest.fixture(scope="module")
 def shipped(smoke_dataset, tmp_path_factory):
     """`monolib.perception.zoo.run` on the smoke study's data (pretraining and evaluation on the same small split: a test of
