@@ -313,6 +313,12 @@ class Study:
             raise StudyError(f"fold {fold!r}: {self.path} has protocol.split: {self.protocol.split} (folds: {want})")
         return self if fold == self.fold else dataclasses.replace(self, fold=fold)
 
+    def fold_key(self) -> dict:
+        """The fold's part of a stage's cache key: ``{"folds": {"k": K, "fold": f}}`` with folds by volume, ``{}``
+        on the release split (whose keys stay what they always were)."""
+        pr = self.protocol
+        return {"folds": {"k": pr.folds, "fold": self.fold}} if pr.split == "volumes" else {}
+
 
 def resolve_path(value: str) -> Path:
     """A path from a study file: absolute, or relative to the project root (the folder of `pyproject.toml`),

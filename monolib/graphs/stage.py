@@ -54,9 +54,7 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
     for role, name in (("depth", sc.depth), ("semantic", sc.semantic)):
         sources[role] = "gt" if name == "gt" else models.get(name) or perception.model_key(study, name, data_key)
     pr = study.protocol  # what chooses the frames (not the k of the metrics, nor the queries' draw)
-    # the fold, with folds by volume (a study of the release split keeps the key it always had)
-    folds = {"folds": {"k": pr.folds, "fold": study.fold}} if pr.split == "volumes" else {}
-    return key_of({**folds, "dataset": data_key, "published": published_fingerprint(study), "seed": study.seed,
+    return key_of({**study.fold_key(), "dataset": data_key, "published": published_fingerprint(study), "seed": study.seed,
                    "frames": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
                               "frames": pr.frames},
                    "val": study.gcn.val_settings, "sources": sources, "depth_scale": sc.depth_scale,

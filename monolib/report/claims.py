@@ -65,15 +65,20 @@ class Claim:
     sentence: str
 
 
-def _cell(raw, where: str) -> Cell:
+def _check_mapping(raw, where: str, keys: tuple, required: tuple) -> None:
+    """One `ClaimsError` naming `where` unless `raw` is a mapping of `keys` holding every key of `required`."""
     if not isinstance(raw, dict):
-        raise ClaimsError(f"{where}: expected a mapping with keys {', '.join(CELL_KEYS)}, got {raw!r}")
-    unknown = sorted(set(raw) - set(CELL_KEYS))
+        raise ClaimsError(f"{where}: expected a mapping with keys {', '.join(keys)}, got {raw!r}")
+    unknown = sorted(set(raw) - set(keys))
     if unknown:
-        raise ClaimsError(f"{where}.{unknown[0]}: unknown key (expected {', '.join(CELL_KEYS)})")
-    for key in ("method", "scenario", "threshold"):
+        raise ClaimsError(f"{where}.{unknown[0]}: unknown key (expected {', '.join(keys)})")
+    for key in required:
         if key not in raw:
             raise ClaimsError(f"{where}.{key}: missing")
+
+
+def _cell(raw, where: str) -> Cell:
+    _check_mapping(raw, where, CELL_KEYS, ("method", "scenario", "threshold"))
     try:
         threshold = float(raw["threshold"])
     except (TypeError, ValueError):
@@ -82,14 +87,7 @@ def _cell(raw, where: str) -> Cell:
 
 
 def _claim(raw, where: str) -> Claim:
-    if not isinstance(raw, dict):
-        raise ClaimsError(f"{where}: expected a mapping with keys {', '.join(CLAIM_KEYS)}, got {raw!r}")
-    unknown = sorted(set(raw) - set(CLAIM_KEYS))
-    if unknown:
-        raise ClaimsError(f"{where}.{unknown[0]}: unknown key (expected {', '.join(CLAIM_KEYS)})")
-    for key in ("id", "a", "b", "relation", "sentence"):
-        if key not in raw:
-            raise ClaimsError(f"{where}.{key}: missing")
+    _check_mapping(raw, where, CLAIM_KEYS, ("id", "a", "b", "relation", "sentence"))
     where = f"{where} ({raw['id']})"
     a, b = _cell(raw["a"], f"{where}.a"), _cell(raw["b"], f"{where}.b")
     if a.protocol != b.protocol:

@@ -76,8 +76,7 @@ def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: i
     graph_method = methods.kind(method, study) == "graph"
     inputs = inputs if inputs is not None else inputs_key(study, method, scenario)
     pr = study.protocol
-    folds = {"folds": {"k": pr.folds, "fold": study.fold}} if pr.split == "volumes" else {}  # (release: as always)
-    return key_of({**folds, "inputs": inputs, "method": None if graph_method else method,
+    return key_of({**study.fold_key(), "inputs": inputs, "method": None if graph_method else method,
                    "encoder": dataclasses.asdict(study.gcn_spec(method)),  # (an image encoder trains on its schedule)
                    "threshold": paths.threshold_json(threshold) if graph_method else None, "seed": int(seed),
                    "protocol": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
