@@ -148,6 +148,8 @@ class GCNSpec:
                                              # validation settings, ties by validation loss) | val_map (its mean
                                              # average precision) | val_loss | last (a fixed schedule: every epoch)
     min_epochs: int = 1                      # no model is kept, and no stop made, before this epoch
+    schedule: str = "constant"               # the learning rate: constant (the paper's Adam) | cosine (from lr down
+                                             # to 0 over `epochs`, per epoch: the last epochs move the model least)
     # encoder choices (the defaults are the paper's; `variants:` in a study file change them per method)
     conv: str = "gcn"                        # gcn | gine, gatv2, transformer (read the edge attributes)
     edges: str = "both"                      # both directions, or "upper" (i < j only, as the published code)
@@ -179,6 +181,7 @@ class Variant:
 
 
 SELECT = ("val_recall", "val_map", "val_loss", "last")  # the model-selection rules of `GCNSpec.select`
+SCHEDULES = ("constant", "cosine")                      # the learning-rate schedules of `GCNSpec.schedule`
 TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
 PAPER, SIBLINGS = "paper", "siblings"  # the test protocols: the paper's, and pairs of sibling settings
 PROTOCOLS = (PAPER, SIBLINGS)          # in table order
@@ -420,7 +423,8 @@ SPLITS = ("release", "volumes")
 GCN_CHOICES = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("both", "upper"),
                "label": ("raw", "embedding", "onehot"), "colour": ("raw", "standardised"),
                "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax", "attention"),
-               "mining": ("random", "batch_hard", "family", "batch_hard_family"), "select": SELECT}
+               "mining": ("random", "batch_hard", "family", "batch_hard_family"), "select": SELECT,
+               "schedule": SCHEDULES}
 FRAME_SIZE = {"width": 1024, "height": 768}  # Hypersim's frame: the largest a study may ask for
 
 

@@ -108,23 +108,25 @@ def test_bad_fold_keys_name_the_key(tmp_path, release, key, value, words):
 
 
 def test_the_mini_hypersim_refuses_folds_and_keeps_its_keys(monkeypatch):
-    """Studies without folds keep their cell names and every key: computed with the code before folds existed, the
-    code and library versions (which change with any edit) held fixed."""
+    """Studies without folds keep their cell names, their data and graph keys (computed with the code before folds
+    existed, the code and library versions, which change with any edit, held fixed) and a cell key without a fold
+    part."""
     from monolib.data import stage as dataset
     from monolib.graphs import stage as scenegraphs
     from monolib.retrieval import cell
 
     monkeypatch.setattr(versions, "code_version", lambda stage: "CODE")
     monkeypatch.setattr(versions, "library_versions", lambda stage: "LIBS")
-    expected = {"smoke": ("e3d6383b8605", "fd0faac3849e", "417d94c96288"),
-                "quick": ("3fca786354f6", "4da1e7b07a49", "fdda168b78b5")}
+    expected = {"smoke": ("e3d6383b8605", "fd0faac3849e"), "quick": ("3fca786354f6", "4da1e7b07a49")}
     for name, keys in expected.items():
         s = load_study(name, check_files=False)
         assert s.folds() == [None] and {c.fold for c in grid(s)} == {None}
         dk = dataset.dataset_key(s)
-        got = (dk, scenegraphs.scenario_key(s, "s1", dk, {m: "M" for m in s.model_names()}),
-               cell.cell_key(s, "gcn", "s1", 1.0, 0, inputs="INPUTS"))
+        got = (dk, scenegraphs.scenario_key(s, "s1", dk, {m: "M" for m in s.model_names()}))
         assert got == keys
+        assert s.fold_key() == {}
+        assert cell.cell_key(s, "gcn", "s1", 1.0, 0, inputs="I") == cell.cell_key(s.at_fold(None), "gcn", "s1", 1.0,
+                                                                                 0, inputs="I")
         assert cell.cell_folder(s, "gcn", "s1", 1.0, 0) == paths.RUNS / name / "cells" / "gcn" / "s1__t1__s0"
     from monolib.params import SYNTH_TRAIN_SETTINGS, DatasetSpec
     assert DatasetSpec().train_settings == SYNTH_TRAIN_SETTINGS and DatasetSpec(source="hypersim").train_settings is None

@@ -257,3 +257,55 @@ def test_the_edge_list_path_of_devices_without_sparse_products_gives_the_same_em
         monkeypatch.setattr(gcn, "SPARSE_DEVICES", ())
         edges = model(batch)
     assert torch.allclose(sparse, edges, atol=1e-5) and not torch.equal(sparse, torch.zeros_like(sparse))
+
+
+@pytest.mark.parametrize("choice", [{}, {"edges": "upper"}, {"label": "embedding", "colour": "standardised"},
+                                    {"edge_weight": "inverse"}, {"conv": "gine"}, {"conv": "gatv2"},
+                                    {"pair_readout": True, "message_passing": False}])
+def test_reads_edge_attr_says_whether_the_lengths_reach_the_embedding(choice):
+    """`reads_edge_attr` (what the runner's cross-scenario copies rely on) agrees with the encoder: the embedding
+    moves with the edge lengths exactly when it says the encoder reads them; the input fingerprint likewise."""
+    import dataclasses
+
+    from monolib.retrieval.gcn import input_fingerprint, reads_edge_attr
+
+    spec = dataclasses.replace(GCNSpec(), **choice)
+    both = graphs_at(1.5, spec)
+    longer = with_lengths_times(both, 3.0)
+    torch.manual_seed(0)
+    model = GraphEncoder(spec)
+    moved = not torch.allclose(embed(model, longer), embed(model, both))
+    assert moved == reads_edge_attr(spec)
+    scene = [complete_graph(g.x, g.pos, g.setting, g.frame) for g in toy_graphs()]  # as the graph stage caches them
+    farther = [complete_graph(g.x, g.pos * 3.0, g.setting, g.frame) for g in toy_graphs()]
+    same = input_fingerprint(scene, math.inf, spec, None) == input_fingerprint(farther, math.inf, spec, None)
+    assert same == (not reads_edge_attr(spec))  # every pair joined at inf: only the lengths differ
+    recoloured = [complete_graph(g.x + 0.01 * (i == 0), g.pos, g.setting, g.frame) for i, g in enumerate(toy_graphs())]
+    assert input_fingerprint(recoloured, 0.0, spec, None) != input_fingerprint(scene, 0.0, spec, None)
+
+
+def test_the_cosine_schedule_sets_each_epochs_learning_rate(monkeypatch):
+    """`schedule: cosine` runs epoch e at lr (1 + cos(pi (e - 1) / epochs)) / 2; `constant` at lr throughout; the two
+    train differently from the same seed."""
+    import dataclasses
+
+    from monolib.retrieval import gcn
+
+    seen = []
+    real = gcn.set_epoch_lr
+
+    def spy(opt, spec, epoch):
+        real(opt, spec, epoch)
+        seen.append(opt.param_groups[0]["lr"])
+
+    monkeypatch.setattr(gcn, "set_epoch_lr", spy)
+    graphs = toy_graphs()
+    spec = GCNSpec(epochs=4, batch_size=8, patience=10, lr=0.01, select="last")
+    constant = train(graphs[:18], graphs[18:], spec, seed=0, threads=1)
+    assert seen == [0.01] * 4
+    seen.clear()
+    cosine = train(graphs[:18], graphs[18:], dataclasses.replace(spec, schedule="cosine"), seed=0, threads=1)
+    assert seen == pytest.approx([0.01, 0.01 * (1 + math.cos(math.pi / 4)) / 2, 0.005,
+                                  0.01 * (1 + math.cos(3 * math.pi / 4)) / 2])
+    assert constant.best_epoch == cosine.best_epoch == 4  # select: last keeps the last epoch
+    assert not torch.allclose(embed(constant.model, graphs), embed(cosine.model, graphs))

@@ -99,6 +99,7 @@ def write(tmp_path, change):
     (lambda d: d["perception"]["depth"][0].update(checkpoint="/nope.pt", backbone="resnet50"), "perception.depth\\[0\\].checkpoint"),
     (lambda d: d.update(variants={"v": {"gcn": {"poolng": "max"}}}), "variants.v.gcn.poolng: unknown key"),
     (lambda d: d.update(variants={"v": {"gcn": {"pooling": "sum"}}}), "variants.v.gcn.pooling: expected one of max, meanmax"),
+    (lambda d: d["gcn"].update(schedule="linear"), "gcn.schedule: expected one of constant, cosine, got 'linear'"),
     (lambda d: d.update(variants={"v": {"scenarios": ["s9"]}}), "variants.v.scenarios: unknown scenario 's9'"),
     (lambda d: d.update(variants={"gcn": {}}), "variants.gcn: a variant cannot reuse the name"),
     (lambda d: d["perception"]["segmentation"].update(backbone="efficientnet_lite9"), "perception.segmentation.backbone: expected one of .*efficientnet_lite2"),

@@ -822,3 +822,25 @@ def test_an_ablation_of_a_method_on_both_protocols(two, monkeypatch):
         assert mine["diff_vs_base"].iloc[0] == pytest.approx(means["part"] - means["gcn"], abs=1e-6)
     md = written["ablation_gcn_md"].read_text()
     assert "Ablation of `gcn`, protocol `paper`" in md and "Ablation of `gcn`, protocol `siblings`" in md
+
+
+def test_the_colour_table_sets_the_papers_number_beside_each_gcn_threshold():
+    """colour.md: per scenario and threshold both colour spaces, their paired difference and, on the `gcn` rows,
+    the paper's Table 1 number (monolib/resources/paper_tables.csv) where it has one."""
+    from monolib.report import tables
+
+    rows = []
+    for method, t in (("gcn", 0.0), ("gcn", 1.0), ("gcn", math.inf), ("ours", 1.0)):
+        rows.append({"method": method, "scenario": "s1", "colour": "hdr", "pair": "s1_tonemapped",
+                     "pair_colour": "tonemapped", "threshold": t, "protocol": "paper", "metric": "recall", "k": 1,
+                     "mean": 70.0, "ci_lo": 60.0, "ci_hi": 80.0, "pair_mean": 75.0, "pair_ci_lo": 65.0,
+                     "pair_ci_hi": 85.0, "diff": 5.0, "diff_lo": -1.0, "diff_hi": 11.0, "significant": False,
+                     "n_seeds": 5})
+    md = tables.colour_markdown(pd.DataFrame(rows, columns=statistics.COLOUR_COLUMNS), {"s1": "GT"})
+    lines = [ln for ln in md.splitlines() if ln.startswith("| ")]
+    assert lines[0].endswith("| Δ tonemapped - hdr | paper |")
+    by_row = {tuple(c.strip() for c in ln.strip("|").split("|")[:2]): ln.strip("|").split("|")[-1].strip()
+              for ln in lines[1:]}
+    assert by_row[("`gcn`", "0 (no edges)")] == ""        # the paper has no threshold without edges
+    assert by_row[("", "1")] == "94.3" and by_row[("", "∞")] == "93.5"
+    assert by_row[("`ours`", "1")] == ""                  # the paper's numbers are of its GCN only

@@ -145,6 +145,33 @@ def test_cells_with_the_graphs_of_a_smaller_threshold_are_exact_copies(smoke_stu
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "again" / "rankings.csv"), pd.read_csv(folder / "rankings.csv"))
 
 
+def test_cells_reading_the_inputs_of_another_scenario_are_exact_copies(smoke_study, tmp_path):
+    """A scenario whose encoder inputs equal an earlier scenario's (here a twin of s4: the same sources) is copied
+    from it cell by cell; running the copy for real gives the same files. Scenarios with other semantics are not."""
+    from monolib.retrieval import cell
+    from monolib.study.runner import CellSpec, grid, same_graphs
+
+    data = {"name": "smoke_twin", "extends": "smoke", "thresholds": [0, 1], "seeds": [0],
+            "scenarios": {"s4_twin": {"depth": "depth_b", "semantic": "deeplab", "label": "s4 again"}}}
+    study_file = tmp_path / "smoke_twin.yaml"
+    study_file.write_text(yaml.safe_dump(data))
+    s = load_study(study_file)
+    copies = same_graphs(s, grid(s))
+    twin = CellSpec("gcn", "s4_twin", 0.0, 0).name
+    assert copies[twin].scenario == "s4" and copies[twin].threshold == 0.0
+    assert CellSpec("gcn", "s2", 0.0, 0).name not in copies  # GT depth, DeepLab: not the inputs of s1 (GT semantics)
+    a = cell.run_cell(s, "gcn", "s4", 0.0, 0, out_dir=str(tmp_path / "s4"))
+    b = cell.run_cell(s, "gcn", "s4_twin", 0.0, 0, out_dir=str(tmp_path / "twin"))
+    assert a["metrics"] == b["metrics"]
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "s4" / "rankings.csv"),
+                                  pd.read_csv(tmp_path / "twin" / "rankings.csv"))
+    record = cell.copy_cell(tmp_path / "s4", tmp_path / "copy", 0.0, "gcn/s4__t0__s0", "KEY",
+                            cell.scenario_fields(s, "s4_twin"))
+    assert (record["scenario"], record["scenario_label"], record["same_inputs_as"]) == ("s4_twin", "s4 again",
+                                                                                        "gcn/s4__t0__s0")
+    assert "same_graphs_as" not in record and record["metrics"] == a["metrics"]
+
+
 def test_killed_study_resumes_without_recomputing(smoke_study, tmp_path):
     """A study over the smoke dataset (ground truth only): killed after its first cells, then run again."""
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())

@@ -402,23 +402,27 @@ def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str
     return "\n".join(lines) + "\n"
 
 
-def twin_rows(table: pd.DataFrame, axis: str, scenario_labels: Optional[Mapping[str, str]] = None) -> list[str]:
+def twin_rows(table: pd.DataFrame, axis: str, scenario_labels: Optional[Mapping[str, str]] = None,
+              paper: Optional[Mapping[tuple, float]] = None) -> list[str]:
     """The per-scenario tables of `monolib.report.statistics.twin_table` along `axis`: per method and threshold,
-    recall@k of the scenario and of its twin, with the paired difference."""
+    recall@k of the scenario and of its twin, with the paired difference; with `paper` ({(scenario, threshold):
+    the paper's number}) a last column with it on the `gcn` rows (blank where the paper has none)."""
     labels = dict(scenario_labels or {})
     lines = []
     for (sc, mine, pair, theirs), g in table.groupby(["scenario", axis, "pair", f"pair_{axis}"], sort=False):
         lines += [f"*{sc}: {labels.get(sc, sc)}*, `{mine}` against {pair} in `{theirs}`:", "",
-                  f"| method | threshold (m) | {mine} | {theirs} | Δ {theirs} - {mine} |",
-                  "|---|---|---:|---:|---:|"]
+                  f"| method | threshold (m) | {mine} | {theirs} | Δ {theirs} - {mine} |" + (" paper |" if paper else ""),
+                  "|---|---|---:|---:|---:|" + ("---:|" if paper else "")]
         prev = None
         for _, r in g.iterrows():
             diff = ("–" if not np.isfinite(r["diff"]) else
                     f"{signed(r['diff'])} [{signed(r['diff_lo'])}, {signed(r['diff_hi'])}]"
                     + (STAR if r["significant"] else ""))
+            theirs_paper = paper.get((sc, float(r["threshold"]))) if paper and r["method"] == "gcn" else None
             lines.append(f"| {'`' + r['method'] + '`' if r['method'] != prev else ''} | "
                          f"{threshold_label(r['threshold'])} | {r['mean']:.1f} {fmt_ci(r['ci_lo'], r['ci_hi'])} | "
-                         f"{r['pair_mean']:.1f} {fmt_ci(r['pair_ci_lo'], r['pair_ci_hi'])} | {diff} |")
+                         f"{r['pair_mean']:.1f} {fmt_ci(r['pair_ci_lo'], r['pair_ci_hi'])} | {diff} |"
+                         + (f" {'' if theirs_paper is None else f'{theirs_paper:.1f}'} |" if paper else ""))
             prev = r["method"]
         lines.append("")
     return lines
@@ -450,8 +454,12 @@ def colour_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, 
              f"over the frame's tonemapped image (`tonemapped`: each frame's brightness divided out, gamma 1/2.2, "
              f"0..1). The networks see the tonemapped image either way. Mean over seeds [95% bootstrap interval, "
              f"{n_boot} resamples of settings, queries and seeds]; Δ: paired difference (twin - scenario) on the same "
-             f"seeds, settings and queries; {STAR}: its interval excludes 0.", ""]
-    return "\n".join(lines + twin_rows(table, "colour", scenario_labels))
+             f"seeds, settings and queries; {STAR}: its interval excludes 0; paper: the paper's number for its GCN "
+             f"(Table 1, the original code's HDR colours).", ""]
+    pt = paper_tables()
+    pt = pt[(pt["metric"] == "recall") & (pt["k"] == k)]
+    paper = {(r.scenario, float(r.threshold)): float(r.value) for r in pt.itertuples(index=False)}
+    return "\n".join(lines + twin_rows(table, "colour", scenario_labels, paper))
 
 
 def protocols_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,

@@ -4,7 +4,8 @@ For every trained method (graph encoders, `image_triplet`, `imagenet_triplet`: t
 ``best_epoch``), per scenario and threshold: the epochs run and the epoch of the kept model (median, min, max over
 seeds), the share of seeds whose kept model is from epoch 1 or 2, and the seed standard deviation of recall@1 on
 the ``paper`` protocol; per method and scenario the same over all its thresholds. A cell copied from a smaller
-threshold with identical graphs (``same_graphs_as``) is the same training and counts once, at that threshold.
+threshold with identical graphs (``same_graphs_as``) is the same training and counts once, at that threshold; a
+cell copied from another scenario with the same encoder inputs (``same_inputs_as``) is shown in its own scenario.
 
 ``training_curves.png`` draws, when `monolib bench --selection` has written ``selection_curves.csv`` into the same
 folder, validation recall@1 and mAP, the inner test's recall@1 (training settings held out) and the study's test
@@ -21,7 +22,7 @@ import pandas as pd
 from monolib import io
 from monolib.params import PAPER
 from monolib.report.results import cell_files, cell_metrics, natural_key, threshold_value
-from monolib.retrieval.model_selection import Rule, replay
+from monolib.retrieval.model_selection import Rule, replay, study_training
 
 EARLY = 2  # a kept model from epoch 1 or 2: trained for hardly anything
 COLUMNS = ["method", "scenario", "threshold", "seeds", "epochs_run_median", "epochs_run_min", "epochs_run_max",
@@ -82,7 +83,8 @@ def _t(value: float) -> str:
 def markdown(table: pd.DataFrame, study_name: str, selection: Optional[str] = None) -> str:
     """training.md of `training_table`."""
     lines = [f"**How training ended, `{study_name}`** (every trained cell; a cell copied from a smaller threshold "
-             f"with identical graphs counts once). Epochs run and the kept model's epoch: median [min, max] over "
+             f"with identical graphs counts once; a cell copied from another scenario whose encoder reads the same "
+             f"inputs is shown in its own scenario's rows). Epochs run and the kept model's epoch: median [min, max] over "
              f"seeds; epoch 1-2: share of seeds whose kept model is from epoch 1 or 2; recall@1 on `paper`, mean and "
              f"seed standard deviation (%). Rows `all`: every threshold of the method and scenario (seed sd: the "
              f"largest)." + (f" Selection: {selection}." if selection else ""), "",
@@ -141,15 +143,15 @@ def fig_curves(curves: pd.DataFrame, path: Path, kept: dict) -> Optional[Path]:
     fig, axes = plt.subplots(1, len(runs), figsize=(3.2 * len(runs), 3.0), sharey=True, squeeze=False)
     for ax, (m, t, s) in zip(axes[0], runs):
         run = curves[(curves["method"] == m) & (curves["threshold"] == t) & (curves["seed"] == s)].sort_values("epoch")
-        for col, label in (("val_recall@1", "val recall@1"), ("val_map", "val mAP"),
-                           ("inner_recall@1", "inner test recall@1"), ("test_recall@1", "test recall@1")):
-            if col in run and run[col].notna().any():
-                ax.plot(run["epoch"], run[col], label=label, lw=1.2)
+        for col, label, scale in (("val_recall@1", "val recall@1", 100), ("val_map", "val mAP", 100),
+                                  ("inner_recall@1", "inner test recall@1", 100), ("test_recall@1", "test recall@1", 1)):
+            if col in run and run[col].notna().any():  # (the history's shares as %, as the test metric is)
+                ax.plot(run["epoch"], scale * run[col], label=label, lw=1.2)
         if (m, t, s) in kept:
             ax.axvline(kept[(m, t, s)], color="k", ls=":", lw=1)
         ax.set_title(f"{m}, {_t(t)} m, seed {s}", fontsize=9)
         ax.set_xlabel("epoch")
-    axes[0][0].set_ylabel("score")
+    axes[0][0].set_ylabel("score (%)")
     axes[0][-1].legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     io.save_figure(fig, path)
@@ -168,14 +170,18 @@ def write(study_name: str, out: Path, grid: Optional[Collection[str]] = None, st
     selection = None
     if study is not None:
         g = study.gcn
-        selection = (f"`gcn.select: {g.select}`, `min_epochs: {g.min_epochs}`, `patience: {g.patience}`, "
-                     f"`epochs: {g.epochs}` (figures/selection.md: the rules compared)")
+        selection = (f"`gcn.lr: {g.lr:g}`, `schedule: {g.schedule}`, `epochs: {g.epochs}`, `select: {g.select}`"
+                     + ("" if g.select == "last" else f", `min_epochs: {g.min_epochs}`, `patience: {g.patience}`")
+                     + " (figures/selection.md: the rules compared)")
     written = {"training_md": out / "training.md", "training_csv": out / "training.csv"}
     io.write_text(written["training_csv"], table.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
     io.write_text(written["training_md"], markdown(table, study_name, selection))
     curves_csv = out / "selection_curves.csv"
     if curves_csv.is_file() and study is not None:
         curves = pd.read_csv(curves_csv)
+        own = study_training(study)
+        if "training" in curves:  # the runs of the study's own training (none: the figure is left out)
+            curves = curves[curves["training"] == (own.name if own else None)]
         rule = Rule("study", study.gcn.select, study.gcn.min_epochs, study.gcn.patience, study.gcn.epochs)
         kept = {(m, float(t), int(s)): replay(run.sort_values("epoch"), rule)[0]
                 for (m, t, s), run in curves.groupby(["method", "threshold", "seed"])}

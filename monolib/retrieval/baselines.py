@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from monolib.device import device, seed_everything
-from monolib.retrieval.gcn import draw_triplets, stopper_of
+from monolib.retrieval.gcn import draw_triplets, set_epoch_lr, stopper_of
 
 log = logging.getLogger(__name__)
 
@@ -263,6 +263,7 @@ def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torc
     stopper = stopper_of(spec, seed, model)
     t0 = time.perf_counter()
     for epoch in range(1, spec.epochs + 1):
+        set_epoch_lr(opt, spec, epoch)
         model.train()
         a, p, n = draw_triplets(settings, rng)
         perm = rng.permutation(len(a))

@@ -209,22 +209,28 @@ def _image_embeddings(study: Study, method: str, seed: int, timings: dict) -> tu
     return emb, [f.key for f in sel.test], [f.setting for f in sel.test], extra, history, state
 
 
+def scenario_fields(study: Study, scenario: str, graph: bool = True) -> dict:
+    """What a cell's record says of its scenario: the scenario, its label, sources, depth scale, and (for a graph
+    method) the projection and node colour space its graphs were built in."""
+    sc = study.scenarios.get(scenario)
+    graph = bool(sc) and graph
+    return {"scenario": scenario, "scenario_label": sc.label if sc else "RGB only (no graph)",
+            "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
+            "depth_scale": sc.depth_scale if sc else None,
+            "projection": study.projection(scenario) if graph else None,
+            "colour": study.colour(scenario) if graph else None}
+
+
 def _record(study: Study, method: str, kind: str, key: str, scenario: str, threshold: float, seed: int,
             evaluated: dict, timings: dict, extra: dict) -> dict:
     """The `cell.json` content of a computed cell."""
-    sc = study.scenarios.get(scenario)
     pr = study.protocol
-    graph = bool(sc) and kind == "graph"
     return {
         "method": method, "kind": kind, "key": key,
-        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None, "scenario": scenario,
+        "encoder": dataclasses.asdict(study.gcn_spec(method)) if kind == "graph" else None,
         "threshold": paths.threshold_json(threshold), "seed": int(seed), "study": study.name,
         "study_file": study.path, **({"fold": study.fold} if study.fold is not None else {}),
-        "scenario_label": sc.label if sc else "RGB only (no graph)",
-        "depth": sc.depth if sc else None, "semantic": sc.semantic if sc else None,
-        "depth_scale": sc.depth_scale if sc else None,
-        "projection": study.projection(scenario) if graph else None,
-        "colour": study.colour(scenario) if graph else None,
+        **scenario_fields(study, scenario, kind == "graph"),
         "protocol": {"settings": pr.settings, "siblings": pr.siblings, "frames": pr.frames, "queries": pr.queries,
                      "positives": pr.positives},
         "protocols": {name: {"settings": r.settings, "draw_seed": r.seed} for name, r in evaluated.items()},
@@ -285,9 +291,12 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     return record
 
 
-def copy_cell(source: Path, folder: Path, threshold: float, source_name: str, key: Optional[str] = None) -> dict:
-    """The results of the cell in `source` as those of `threshold` (the two have identical scene graphs): its files
-    copied, `cell.json` with this threshold and ``same_graphs_as`` naming the source (written last, as always)."""
+def copy_cell(source: Path, folder: Path, threshold: float, source_name: str, key: Optional[str] = None,
+              scenario: Optional[dict] = None) -> dict:
+    """The results of the cell in `source` as those of `threshold` (the two read identical inputs): its files
+    copied, `cell.json` with this threshold and ``same_graphs_as`` naming the source (written last, as always).
+    `scenario`: the `scenario_fields` of a cell of another scenario whose encoder reads the same inputs as the
+    source's (``same_inputs_as`` then names the source: its own scenario's row of a report counts it)."""
     t = time.perf_counter()
     record = read_json(source / "cell.json")
     folder.mkdir(parents=True, exist_ok=True)
@@ -295,8 +304,11 @@ def copy_cell(source: Path, folder: Path, threshold: float, source_name: str, ke
         if f.is_file() and f.name != "cell.json" and not f.name.startswith("."):  # not a killed write's temp file
             with atomic_path(folder / f.name) as tmp:
                 shutil.copyfile(f, tmp)
-    record.update(threshold=paths.threshold_json(threshold), same_graphs_as=source_name,
-                  timings={"copy_s": time.perf_counter() - t})
+    record.update(threshold=paths.threshold_json(threshold), timings={"copy_s": time.perf_counter() - t})
+    if scenario is None:
+        record["same_graphs_as"] = source_name
+    else:
+        record.update(scenario, same_inputs_as=source_name)
     if key is not None:
         record["key"] = key  # this cell's own key (its threshold), so that `is_complete(folder, key)` holds
     write_json(folder / "cell.json", record)

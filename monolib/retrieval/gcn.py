@@ -7,6 +7,7 @@ same setting, its negative a random graph of another setting; drawn afresh each 
 from __future__ import annotations
 
 import copy
+import hashlib
 import logging
 import time
 import warnings
@@ -111,6 +112,29 @@ def encoder_graph(g: Data, threshold: float, spec: GCNSpec, projection: Optional
     `edge_layout`, the layout features in the camera frame of `projection` (`layout_graph`)."""
     return layout_graph(at_threshold(g, threshold, spec.edges == "both"), projection, spec.node_layout,
                         spec.edge_layout)
+
+
+def reads_edge_attr(spec: GCNSpec) -> bool:
+    """Whether an encoder of `spec` reads its graphs' edge attributes (lengths, layout): the paper's GCNConv without
+    edge weights reads only which nodes are joined, so two graph sets with the same nodes and edges are the same
+    input to it whatever depth placed the nodes (node layout columns, when read, are part of x)."""
+    return (spec.conv != "gcn" or spec.edge_weight != "none" or spec.pair_readout or spec.edge_layout)
+
+
+def input_fingerprint(graphs: list[Data], threshold: float, spec: GCNSpec, projection: Optional[str]) -> str:
+    """A digest of what an encoder of `spec` reads of `graphs` at `threshold` (`encoder_graph`): each graph's
+    setting, frame, node features and edges, and its edge attributes when the encoder reads them. Equal digests:
+    the same training and the same embeddings, seed for seed."""
+    h = hashlib.sha256()
+    attrs = reads_edge_attr(spec)
+    for g in graphs:
+        e = encoder_graph(g, threshold, spec, projection)
+        h.update(f"{g.setting}|{g.frame}|{e.num_nodes}|".encode())
+        h.update(e.x.numpy().tobytes())
+        h.update(e.edge_index.numpy().tobytes())
+        if attrs and e.edge_attr is not None:
+            h.update(e.edge_attr.numpy().tobytes())
+    return h.hexdigest()
 
 
 class GraphEncoder(nn.Module):
@@ -432,6 +456,20 @@ class EarlyStopping:
         return self.bad_epochs >= self.patience
 
 
+def epoch_lr(spec, epoch: int) -> float:
+    """The learning rate of `epoch` (1-based) under `spec.schedule`: `spec.lr` throughout (``constant``), or from
+    `spec.lr` at epoch 1 down a half cosine towards 0 after the last of `spec.epochs` (``cosine``)."""
+    if spec.schedule == "cosine":
+        return spec.lr * 0.5 * (1.0 + np.cos(np.pi * (epoch - 1) / spec.epochs))
+    return spec.lr
+
+
+def set_epoch_lr(opt: torch.optim.Optimizer, spec, epoch: int) -> None:
+    """Every parameter group of `opt` at `epoch_lr(spec, epoch)`."""
+    for group in opt.param_groups:
+        group["lr"] = epoch_lr(spec, epoch)
+
+
 def stopper_of(spec, seed: int, model: nn.Module) -> EarlyStopping:
     """The `EarlyStopping` of a training spec (`GCNSpec`: patience, select, min_epochs)."""
     return EarlyStopping(spec.patience, seed, model, spec.select, spec.min_epochs)
@@ -466,6 +504,7 @@ def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed:
     pool = GraphPool(train_graphs)
     t0 = time.perf_counter()
     for epoch in range(1, spec.epochs + 1):
+        set_epoch_lr(opt, spec, epoch)
         model.train()
         losses, seen = [], 0
         if spec.mining in ("batch_hard", "batch_hard_family"):

@@ -43,12 +43,28 @@ CONFIGS = (("gcn", 0.0), ("gcn", 1.0), ("gcn", 5.0), ("gcn", math.inf), ("ours",
 
 
 @dataclass(frozen=True)
+class Training:
+    """How the runs a rule is replayed on were trained: the learning rate, its schedule and the epochs run."""
+    name: str
+    lr: float
+    schedule: str        # `monolib.params.SCHEDULES`
+    epochs: int
+
+
+# The trainings compared: the paper's constant learning rate (Adam's default 0.001), three times that, and three
+# times that decayed along a half cosine over 20 epochs. Each is trained all its epochs once per seed.
+TRAININGS = (Training("lr 0.001", 1e-3, "constant", 40), Training("lr 0.003", 3e-3, "constant", 40),
+             Training("lr 0.003, cosine over 20", 3e-3, "cosine", 20))
+
+
+@dataclass(frozen=True)
 class Rule:
     name: str
     select: str          # `monolib.params.SELECT`
     min_epochs: int
     patience: int
     epochs: int          # at most this many epochs
+    training: str = TRAININGS[0].name   # the `Training` whose runs it reads
 
 
 RULES = (
@@ -63,7 +79,19 @@ RULES = (
     Rule("fixed 10 epochs (the paper's)", "last", 1, 40, 10),
     Rule("fixed 20 epochs", "last", 1, 40, 20),
     Rule("fixed 40 epochs", "last", 1, 40, 40),
+    Rule("lr 0.003: val mAP from epoch 10, patience 6", "val_map", 10, 6, 40, TRAININGS[1].name),
+    Rule("lr 0.003: fixed 10 epochs", "last", 1, 40, 10, TRAININGS[1].name),
+    Rule("lr 0.003: fixed 15 epochs", "last", 1, 40, 15, TRAININGS[1].name),
+    Rule("lr 0.003: fixed 20 epochs", "last", 1, 40, 20, TRAININGS[1].name),
+    Rule("lr 0.003: fixed 40 epochs", "last", 1, 40, 40, TRAININGS[1].name),
+    Rule("lr 0.003, cosine: fixed 20 epochs", "last", 1, 20, 20, TRAININGS[2].name),
 )
+
+
+def study_training(study: Study) -> Optional[Training]:
+    """The `Training` of `TRAININGS` that is the study's own (its learning rate and schedule), if any."""
+    g = study.gcn
+    return next((t for t in TRAININGS if math.isclose(t.lr, g.lr) and t.schedule == g.schedule), None)
 
 
 def inner_split(graphs: dict[str, list], families: int = INNER_FAMILIES, seed: int = 0) -> tuple[list, list, list]:
@@ -101,11 +129,11 @@ _SHARED: dict = {}  # the study and its graphs while `curves` runs, for the work
 
 
 def _curve(args) -> list[dict]:
-    """Worker: every epoch's history row of one (method, threshold, seed) trained all its epochs."""
-    method, threshold, seed, with_test = args
+    """Worker: every epoch's history row of one (method, threshold, seed) trained all its epochs with `training`."""
+    method, threshold, seed, with_test, training = args
     study, split, test = _SHARED["study"], _SHARED["split"], (_SHARED["test"] if with_test else [])
-    spec = dataclasses.replace(study.gcn_spec(method), patience=study.gcn.epochs + 1, select="val_recall",
-                               min_epochs=1)
+    spec = dataclasses.replace(study.gcn_spec(method), patience=training.epochs + 1, select="val_recall",
+                               min_epochs=1, lr=training.lr, schedule=training.schedule, epochs=training.epochs)
     projection = study.projection(SCENARIO)
     train, val, inner, test = ([gcn.encoder_graph(g, threshold, spec, projection) for g in part]
                                for part in (*split, test))
@@ -120,17 +148,21 @@ def _curve(args) -> list[dict]:
         return row
 
     result = gcn.train(train, val, spec, seed=seed, threads=1, deterministic=study.deterministic, on_epoch=on_epoch)
-    return [{"method": method, "threshold": threshold, "seed": seed, **row} for row in result.history]
+    return [{"training": training.name, "method": method, "threshold": threshold, "seed": seed, **row}
+            for row in result.history]
 
 
-def curves(study: Study, configs=CONFIGS, seeds: Optional[list[int]] = None, workers: Optional[int] = None
-           ) -> pd.DataFrame:
-    """Every epoch of every run of `configs` x `seeds` (default: the study's) on the inner split of `SCENARIO`."""
+def curves(study: Study, configs=CONFIGS, seeds: Optional[list[int]] = None, workers: Optional[int] = None,
+           trainings=TRAININGS) -> pd.DataFrame:
+    """Every epoch of every run of `trainings` x `configs` x `seeds` (default: the study's) on the inner split of
+    `SCENARIO`. The study's own test recall@1 is recorded per epoch for the first seeds of the study's training."""
     graphs = scenegraphs.load(study, SCENARIO)
     split = inner_split(graphs, seed=study.seed)
     known = set(study.graph_methods())
     seeds = list(seeds or study.seeds)
-    jobs = [(m, float(t), int(s), s in seeds[:TEST_CURVE_SEEDS]) for m, t in configs if m in known for s in seeds]
+    own = study_training(study)
+    jobs = [(m, float(t), int(s), tr == own and s in seeds[:TEST_CURVE_SEEDS], tr)
+            for tr in trainings for m, t in configs if m in known for s in seeds]
     _SHARED.update(study=study, split=split, test=graphs["test"])  # (forked workers inherit the graphs, unpickled)
     workers = max(1, min(workers or study.jobs, len(jobs)))
     try:
@@ -160,7 +192,8 @@ def rules_table(curves_df: pd.DataFrame, rules=RULES) -> pd.DataFrame:
     rows = []
     for rule in rules:
         per = []
-        for (m, t), g in curves_df.groupby(["method", "threshold"], sort=False):
+        runs = curves_df[curves_df["training"] == rule.training]
+        for (m, t), g in runs.groupby(["method", "threshold"], sort=False):
             kept = []
             for _, run in g.groupby("seed", sort=True):
                 run = run.sort_values("epoch")
@@ -169,6 +202,8 @@ def rules_table(curves_df: pd.DataFrame, rules=RULES) -> pd.DataFrame:
             epochs, ran, recall = (np.array(v, float) for v in zip(*kept))
             per.append((rule.name, m, t, 100 * recall.mean(), 100 * recall.std(ddof=1) if len(recall) > 1 else 0.0,
                         float((epochs <= 2).mean()), ran.mean(), len(recall)))
+        if not per:
+            continue
         rows += per
         p = pd.DataFrame(per)
         rows.append((rule.name, "all", math.nan, p[3].mean(), p[4].mean(), p[5].mean(), p[6].mean(), int(p[7].sum())))
@@ -179,7 +214,7 @@ def rules_table(curves_df: pd.DataFrame, rules=RULES) -> pd.DataFrame:
 def best_possible(curves_df: pd.DataFrame) -> pd.DataFrame:
     """Per (method, threshold): the inner test recall@1 of the best epoch of each run (an oracle no rule can reach:
     it reads the inner test), mean over seeds, in %."""
-    best = curves_df.groupby(["method", "threshold", "seed"], sort=False)["inner_recall@1"].max()
+    best = curves_df.groupby(["method", "threshold", "seed"], sort=False)["inner_recall@1"].max()  # any training
     return (100 * best.groupby(["method", "threshold"], sort=False).mean()).rename("oracle").reset_index()
 
 
@@ -187,16 +222,29 @@ def _threshold(t: float) -> str:
     return "∞" if math.isinf(t) else f"{t:g}"
 
 
-def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, seconds: float) -> str:
-    """selection.md: every rule over all runs, then per configuration, the oracle beside."""
+def study_rule(study: Study, rules=RULES) -> Optional[Rule]:
+    """The rule of `rules` that the study's `gcn` settings train and select by, if any."""
+    g, own = study.gcn, study_training(study)
+    for r in rules:
+        same_stop = r.select == "last" or (r.min_epochs, r.patience) == (g.min_epochs, g.patience)
+        if own and r.training == own.name and r.select == g.select and r.epochs == g.epochs and same_stop:
+            return r
+    return None
+
+
+def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, seconds: float,
+             chosen: Optional[Rule] = None) -> str:
+    """selection.md: every rule over all runs, then per configuration, the oracle beside; `chosen`: the study's."""
     overall = table[table["method"] == "all"]
+    trainings = "; ".join(f"{t.name} ({t.schedule}, {t.epochs} epochs)" for t in TRAININGS)
     lines = [f"**Model selection, measured on the training split of `{study_name}`** (`monolib bench --selection`, "
              f"{seconds:.0f} s). {INNER_FAMILIES} training families held out as an inner test (both settings each), "
              f"queried as the paper's protocol queries its test ({INNER_POSITIVES} positives per setting, the other "
              f"frames query, every frame of the other settings a candidate); the study's validation settings as "
-             f"they are; each encoder trained all its epochs once per seed, each rule replayed on the recorded "
-             f"epochs. Inner recall@1 in %; seed sd: standard deviation over seeds, mean over configurations; "
-             f"epoch 1-2: share of runs whose kept model is from epoch 1 or 2.", "",
+             f"they are; each encoder trained all its epochs once per seed and training ({trainings}), each rule "
+             f"replayed on the recorded epochs of its training (rules without a learning rate: 0.001). Inner "
+             f"recall@1 in %; seed sd: standard deviation over seeds, mean over configurations; epoch 1-2: share of "
+             f"runs whose kept model is from epoch 1 or 2.", "",
              "| rule | inner recall@1 | seed sd | epoch 1-2 | epochs run |", "|---|---:|---:|---:|---:|"]
     for _, r in overall.iterrows():
         lines.append(f"| {r['rule']} | {r['inner_recall@1']:.1f} | {r['seed_sd']:.1f} | {r['kept_epoch_le2']:.2f} | "
@@ -211,6 +259,8 @@ def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, seconds
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
     orc = {(m, t): v for m, t, v in oracle.itertuples(index=False)}
     lines.append("| oracle | " + " | ".join(f"{orc[(m, t)]:.1f}" for m, t in configs.itertuples(index=False)) + " |")
+    if chosen is not None:
+        lines += ["", f"The study trains by the rule **{chosen.name}** (its `gcn` settings)."]
     return "\n".join(lines) + "\n"
 
 
@@ -226,5 +276,5 @@ def write(study: Study, out: Path, seeds: Optional[list[int]] = None) -> dict[st
     files = {"md": out / "selection.md", "rules": out / "selection_rules.csv", "curves": out / "selection_curves.csv"}
     write_text(files["curves"], df.to_csv(index=False))
     write_text(files["rules"], table.to_csv(index=False))
-    write_text(files["md"], markdown(table, best_possible(df), study.name, seconds))
+    write_text(files["md"], markdown(table, best_possible(df), study.name, seconds, study_rule(study)))
     return files
