@@ -60,12 +60,14 @@ def same_graphs(study: Study, cells: list[CellSpec], scenario_keys: dict[str, st
                                                       key=(scenario_keys or {}).get(scenario) if fold is None else None)
         return loaded[scenario, fold]
 
+    lengths: dict[tuple, torch.Tensor] = {}
     out = {}
     for (_, scenario, _, fold), group in groups.items():
-        graphs = graphs_of(scenario, fold)
-        lengths = torch.cat([g.pair_len for split in graphs.values() for g in split] + [torch.zeros(0)])
+        if (scenario, fold) not in lengths:
+            lengths[scenario, fold] = torch.cat([g.pair_len for split in graphs_of(scenario, fold).values()
+                                                 for g in split] + [torch.zeros(0)])
         by_threshold = {float(c.threshold): c for c in group}
-        for t, source in scenegraphs.identical_thresholds(lengths, by_threshold).items():
+        for t, source in scenegraphs.identical_thresholds(lengths[scenario, fold], by_threshold).items():
             out[by_threshold[t].name] = by_threshold[source]
     out.update(_same_inputs(study, [c for c in cells if c.name not in out and c.scenario in study.scenarios
                                     and methods.kind(c.method, study) == "graph"], graphs_of))
