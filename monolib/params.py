@@ -180,6 +180,16 @@ class Variant:
                                              # ablation_<that method>.md sets it against that method, both protocols
 
 
+@dataclass
+class MoreSeeds:
+    """Seeds beyond the study's `seeds` for some cells of one method: those whose mean needs more seeds to reach a
+    given standard error at the seed spread measured (figures/training.md names them and how many they need)."""
+    method: str
+    scenarios: list[str]
+    thresholds: list[float]
+    seeds: list[int]
+
+
 SELECT = ("val_recall", "val_map", "val_loss", "last")  # the model-selection rules of `GCNSpec.select`
 SCHEDULES = ("constant", "cosine")                      # the learning-rate schedules of `GCNSpec.schedule`
 TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
@@ -231,6 +241,7 @@ class Study:
     scenarios: dict[str, Scenario] = field(default_factory=lambda: {"s1": Scenario(label="GT depth, GT semantics")})
     thresholds: list[float] = field(default_factory=lambda: [1.0, 2.0, 5.0, 10.0, math.inf])
     seeds: list[int] = field(default_factory=lambda: [0])
+    more_seeds: list[MoreSeeds] = field(default_factory=list)  # seeds beyond `seeds` for some cells
     methods: list[str] = field(default_factory=lambda: ["gcn"])
     gcn: GCNSpec = field(default_factory=GCNSpec)
     variants: dict[str, Variant] = field(default_factory=dict)
@@ -281,6 +292,15 @@ class Study:
 
     def graph_methods(self) -> list[str]:
         return [m for m in self.methods if m == "gcn"] + list(self.variants)
+
+    def cell_thresholds(self, method: str) -> dict[str, list[float]]:
+        """``{scenario: thresholds}`` of a graph method's cells: a variant's scenarios (default: the scenarios in
+        the tables; `gcn`: every scenario) and thresholds (default: the scenario's, else the study's)."""
+        v = self.variants.get(method)
+        scenarios = (v.scenarios if v and v.scenarios else None) or [
+            n for n, sc in self.scenarios.items() if sc.in_tables or method == "gcn"]
+        return {sc: (v.thresholds if v and v.thresholds else None) or self.scenarios[sc].thresholds or self.thresholds
+                for sc in scenarios}
 
     def model_names(self) -> list[str]:
         return [self.perception.segmentation.name] + [d.name for d in self.perception.depth]
@@ -397,6 +417,11 @@ def _build(cls, data: dict, where: str):
     unknown = sorted(set(data) - names)
     if unknown:
         raise StudyError(f"{where + '.' if where else ''}{unknown[0]}: unknown key (allowed: {', '.join(sorted(names))})")
+    required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING
+                and f.default_factory is dataclasses.MISSING and f.name not in data]
+    if required:
+        raise StudyError(f"{where + '.' if where else ''}{required[0]}: missing (each entry needs "
+                         f"{', '.join(f.name for f in dataclasses.fields(cls))})")
     kwargs = {k: _convert(v, hints[k], f"{where + '.' if where else ''}{k}") for k, v in data.items()}
     return cls(**kwargs)
 
@@ -502,6 +527,37 @@ def _check_grid(study: Study) -> None:
         _bad("seeds", f"each seed once, got {study.seeds} (two cells of one seed would share a folder)")
     for key in ("threads", "jobs", "cell_timeout"):
         _at_least(key, getattr(study, key), 1)
+
+
+def _check_more_seeds(study: Study) -> None:
+    """Each entry of `more_seeds` names cells of the grid (a method of the study, its scenarios and thresholds) and
+    seeds that are not already the study's, each cell's seed once."""
+    seen: dict[tuple, int] = {}
+    for i, extra in enumerate(study.more_seeds):
+        where = f"more_seeds[{i}]"
+        if extra.method not in study.graph_methods():
+            _bad(f"{where}.method", f"expected a graph method of the study ({', '.join(study.graph_methods())}), "
+                                    f"got {extra.method!r}")
+        if not extra.seeds or len(set(extra.seeds)) != len(extra.seeds):
+            _bad(f"{where}.seeds", f"expected at least one seed, each once, got {extra.seeds}")
+        twice = sorted(set(extra.seeds) & set(study.seeds))
+        if twice:
+            _bad(f"{where}.seeds", f"seeds {twice} are already the study's seeds {study.seeds}")
+        axes = study.cell_thresholds(extra.method)
+        for sc in extra.scenarios:
+            if sc not in axes:
+                _bad(f"{where}.scenarios", f"{extra.method} does not run on scenario {sc!r} (it runs on "
+                                           f"{', '.join(axes)})")
+            thresholds = axes[sc]
+            for t in extra.thresholds:
+                if t not in thresholds:
+                    _bad(f"{where}.thresholds", f"{t:g} m is not a threshold of {extra.method} on {sc} "
+                                                f"({', '.join(f'{x:g}' for x in thresholds)})")
+                for seed in extra.seeds:
+                    first = seen.setdefault((sc, paths.threshold_tag(t), seed, extra.method), i)
+                    if first != i:
+                        _bad(f"{where}.seeds", f"seed {seed} of {extra.method} on {sc} at {t:g} m is already in "
+                                               f"more_seeds[{first}]")
 
 
 def _check_perception(study: Study, check_files: bool) -> None:
@@ -625,6 +681,7 @@ def _check(study: Study, check_files: bool = True) -> None:
     _check_perception(study, check_files)
     _check_scenarios(study)
     _check_methods(study)
+    _check_more_seeds(study)
 
 
 def find_study(study: str | Path) -> Path:

@@ -175,10 +175,15 @@ def test_an_extending_study_merges_key_by_key(tmp_path):
 
 def test_an_extending_study_removes_what_it_sets_to_null(tmp_path):
     """A scenario or variant of the base that the extending file sets to null is not in the study (the colour study
-    keeps two of quick's scenarios); a list set to null is a null value, as before."""
+    keeps two of quick's scenarios); a list set to null is a null value, as before. quick's `more_seeds` name
+    cells of s4: a study without s4 sets its own (one error naming the key otherwise)."""
     child = tmp_path / "child.yaml"
-    child.write_text(yaml.safe_dump({"name": "child", "extends": "quick", "scenarios": {"s2": None, "s4": None},
-                                     "variants": {"layout": None, "ours": {"thresholds": None}}}))
+    data = {"name": "child", "extends": "quick", "scenarios": {"s2": None, "s4": None},
+            "variants": {"layout": None, "ours": {"thresholds": None}}}
+    child.write_text(yaml.safe_dump(data))
+    with pytest.raises(StudyError, match="more_seeds\\[0\\].scenarios: gcn does not run on scenario 's4'"):
+        load_study(child)
+    child.write_text(yaml.safe_dump({**data, "more_seeds": []}))
     s = load_study(child)
     assert list(s.scenarios) == ["s1", "s3"] and list(s.variants) == ["ours"]
     assert s.variants["ours"].thresholds is None
@@ -209,6 +214,21 @@ def test_threshold_zero_and_no_siblings_protocol_are_allowed(tmp_path):
     (lambda d: d.update(thresholds=[1, 2.5, 2.5]), "thresholds: 2.5 and 2.5 name the same cell folder"),
     (lambda d: d.update(thresholds=[2.5, 2.5000000000001]), "thresholds: 2.5 and 2.5000000000001 name the same cell folder"),
     (lambda d: d["scenarios"]["s2"].update(thresholds=[1, 1.0]), "scenarios.s2.thresholds: 1.0 and 1.0 name the same"),
+    (lambda d: d.update(more_seeds=[{"method": "gnc", "scenarios": ["s1"], "thresholds": [0], "seeds": [1]}]),
+     "more_seeds\\[0\\].method: expected a graph method of the study \\(gcn"),
+    (lambda d: d.update(more_seeds=[{"method": "gcn", "scenarios": ["s9"], "thresholds": [0], "seeds": [1]}]),
+     "more_seeds\\[0\\].scenarios: gcn does not run on scenario 's9'"),
+    (lambda d: d.update(more_seeds=[{"method": "gcn", "scenarios": ["s1"], "thresholds": [3], "seeds": [1]}]),
+     "more_seeds\\[0\\].thresholds: 3 m is not a threshold of gcn on s1"),
+    (lambda d: d.update(more_seeds=[{"method": "gcn", "scenarios": ["s1"], "thresholds": [0], "seeds": [0, 1]}]),
+     "more_seeds\\[0\\].seeds: seeds \\[0\\] are already the study's seeds"),
+    (lambda d: d.update(more_seeds=[{"method": "gcn", "scenarios": ["s1"], "thresholds": [0], "seeds": [1]},
+                                    {"method": "gcn", "scenarios": ["s1", "s2"], "thresholds": [0], "seeds": [1]}]),
+     "more_seeds\\[1\\].seeds: seed 1 of gcn on s1 at 0 m is already in more_seeds\\[0\\]"),
+    (lambda d: d.update(more_seeds=[{"method": "gcn", "scenarios": ["s1"], "thresholds": [0]}]),
+     "more_seeds\\[0\\].seeds: missing \\(each entry needs method, scenarios, thresholds, seeds\\)"),
+    (lambda d: d.update(more_seeds=[{"method": "gcn", "scenarios": ["s1"], "thresholds": [0], "seeds": []}]),
+     "more_seeds\\[0\\].seeds: expected at least one seed"),
 ])
 def test_values_the_code_cannot_use_are_refused_when_the_study_loads(tmp_path, change, key):
     """Each bad value: one StudyError naming the key and what is expected, before any work."""
@@ -240,3 +260,22 @@ def test_projection_is_a_study_key_each_scenario_may_override(tmp_path):
 def test_close_thresholds_get_folders_of_their_own(tmp_path):
     s = load_study(write(tmp_path, lambda d: d.update(thresholds=[2.5, 2.5000001])))
     assert [paths.threshold_tag(t) for t in s.thresholds] == ["2.5", "2.5000001"]
+
+
+def test_more_seeds_add_cells_to_the_grid_and_nowhere_else(tmp_path):
+    """`more_seeds`: the named cells of one method run with the extra seeds as well, right after the study's seeds
+    of the same cell; every other cell keeps the study's seeds."""
+    from monolib.retrieval.grid import grid
+
+    base = load_study(write(tmp_path, lambda d: None))
+    study = load_study(write(tmp_path, lambda d: d.update(more_seeds=[
+        {"method": "gcn", "scenarios": ["s2", "s3"], "thresholds": [0, ".inf"], "seeds": [7, 3]}])))
+    before, after = grid(base), grid(study)
+    added = [c for c in after if c not in before]
+    assert sorted((c.scenario, c.threshold, c.seed) for c in added) == sorted(
+        (sc, t, s) for sc in ("s2", "s3") for t in (0.0, math.inf) for s in (7, 3))
+    assert [c for c in after if c in before] == before
+    i = after.index(added[0])
+    assert (after[i - 1].method, after[i - 1].scenario, after[i - 1].threshold, after[i - 1].seed) == \
+        ("gcn", "s2", 0.0, study.seeds[-1])
+    assert [c.seed for c in after[i:i + 2]] == [7, 3]

@@ -26,7 +26,8 @@ def test_the_table_counts_early_models_and_the_seed_spread():
     assert "| `gcn` | s1 | 1 | 3 | 8 [7, 20] | 2 [1, 14] | 0.67 | 55.0 | 25.0 | 14.4 |" in md
     assert "1 of 2 cells (over: `gcn` s1 1 m 25.0)" in md
     assert "`gcn` 0.33 (over)" in md
-    assert "1 of 2 cells (largest: `gcn` s1 1 m, 14.4)" in md
+    assert "1 of 2 cells (over: `gcn` s1 1 m, 14.4 with 3 seeds, 70 at its spread;" in md
+    assert training.seeds_needed(8.7) == 9 and training.seeds_needed(6.0) == 4 and training.seeds_needed(1.0) == 2
 
 
 def test_a_study_that_meets_its_targets_says_so():

@@ -27,19 +27,19 @@ class CellSpec:
 
 
 def grid(study: Study) -> list[CellSpec]:
-    """Every cell of the study: graph methods x scenarios x thresholds x seeds, image methods x seeds; each of them
-    once per fold with `protocol.split: volumes` (fold-major, so that a fold's cells run in a row)."""
+    """Every cell of the study: graph methods x scenarios x thresholds x seeds (and the `more_seeds` of some of
+    them, right after the study's seeds of the same cell), image methods x seeds; each of them once per fold with
+    `protocol.split: volumes` (fold-major, so that a fold's cells run in a row)."""
     cells = []
     for m in study.methods + list(study.variants):
         if methods.kind(m, study) == "image":
             cells += [CellSpec(m, "rgb", math.inf, s) for s in study.seeds]
             continue
-        v = study.variants.get(m)
-        scenarios = (v.scenarios if v and v.scenarios else None) or [
-            n for n, sc in study.scenarios.items() if sc.in_tables or m == "gcn"]
-        for sc in scenarios:
-            thresholds = (v.thresholds if v and v.thresholds else None) or study.scenarios[sc].thresholds or study.thresholds
-            cells += [CellSpec(m, sc, t, s) for t in thresholds for s in study.seeds]
+        for sc, thresholds in study.cell_thresholds(m).items():
+            for t in thresholds:
+                more = [s for e in study.more_seeds if e.method == m and sc in e.scenarios and t in e.thresholds
+                        for s in e.seeds]
+                cells += [CellSpec(m, sc, t, s) for s in study.seeds + more]
     return [replace(c, fold=f) for f in study.folds() for c in cells]
 
 
