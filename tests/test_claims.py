@@ -61,6 +61,10 @@ def test_relations_read_the_difference_interval():
     assert claims.holds("above", 0.5, 3.0) and not claims.holds("above", -0.5, 3.0)
     assert claims.holds("below", -3.0, -0.1) and not claims.holds("below", -3.0, 0.1)
     assert claims.holds("level", -1.0, 2.0) and claims.holds("level", 0.0, 0.0) and not claims.holds("level", 0.1, 2)
+    assert claims.holds("not_above", -1.0, 2.0) and claims.holds("not_above", -3.0, -1.0)
+    assert not claims.holds("not_above", 0.1, 2.0)
+    assert claims.holds("not_below", -1.0, 2.0) and claims.holds("not_below", 1.0, 3.0)
+    assert not claims.holds("not_below", -2.0, -0.1)
     with pytest.raises(ValueError, match="relation 'beside'"):
         claims.holds("beside", 0, 1)
 
@@ -86,7 +90,7 @@ def test_claims_on_synthetic_rankings(toy, tmp_path):
 @pytest.mark.parametrize("entry, message", [
     ({**claim("x", A, B, "above"), "colour": "red"}, r"claims.yaml: toy\[0\].colour: unknown key"),
     (claim("x", {**A, "seed": 1}, B, "above"), r"toy\[0\] \(x\).a.seed: unknown key"),
-    (claim("x", A, B, "beside"), r"toy\[0\] \(x\).relation: expected one of above, below, level, got 'beside'"),
+    (claim("x", A, B, "beside"), r"toy\[0\] \(x\).relation: expected one of above, below, level, not_above, not_below, got 'beside'"),
     (claim("x", A, B, "above", "{a} is {c}"), r"toy\[0\] \(x\).sentence: unknown placeholder \{c\}"),
     ({**claim("x", A, B, "above"), "metric": "map@1"}, r"\(x\).metric: expected recall@K or precision@K"),
     (claim("x", A, {**B, "protocol": "siblings"}, "above"), r"\(x\): a and b on protocols 'paper' and 'siblings'"),
@@ -186,7 +190,8 @@ def test_verify_names_a_claim_whose_relation_flipped(smoke_study, tmp_path):
     against = shutil.copytree(paths.figures_dir("smoke"), tmp_path / "committed")
     data = yaml.safe_load(claims.CLAIMS_FILE.read_text())
     first = data["smoke"][0]
-    first["relation"] = {"above": "below", "below": "above", "level": "above"}[first["relation"]]
+    first["relation"] = {"above": "below", "below": "above", "level": "above", "not_above": "above",
+                          "not_below": "below"}[first["relation"]]
     path = tmp_path / "claims.yaml"
     path.write_text(yaml.safe_dump(data))
     v = verify.verify("smoke", against, claims_path=path)

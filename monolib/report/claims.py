@@ -8,14 +8,16 @@
       a: {method: layout, scenario: s1, threshold: .inf, protocol: paper}
       b: {method: color_hist, scenario: rgb, threshold: .inf}   # protocol: paper when left out
       metric: recall@1                           # the default
-      relation: level                            # above | below | level
+      relation: level                            # above | below | level | not_above | not_below
       sentence: "`layout` on ground truth ({a}) is level with the colour histogram ({b})."
 
 Both cells of a claim belong to one protocol (the bootstrap pairs queries within a protocol, never across). The
 difference is mean(a) - mean(b) with the paired bootstrap's 95 % interval (`statistics.paired_difference`, the
 protocol's `statistics.Bootstrap`); the two means and their intervals are the tables' (``intervals.csv``).
 ``above`` holds when the difference's interval lies entirely above 0, ``below`` entirely below 0, ``level`` when
-it contains 0. The sentence is a template without numbers: ``{a}`` and ``{b}`` become each cell's mean with its
+it contains 0; ``not_above`` when it does not lie entirely above 0 (level or below), ``not_below`` when it does not
+lie entirely below 0 (level or above): what a comparison whose verdict moves between level and one side from one
+CPU to another (training is not bit for bit across CPUs) can state on every one. The sentence is a template without numbers: ``{a}`` and ``{b}`` become each cell's mean with its
 interval, ``{diff}`` the difference with its interval.
 """
 from __future__ import annotations
@@ -34,7 +36,7 @@ from monolib.params import PAPER
 from monolib.report import results, statistics
 
 CLAIMS_FILE = paths.PARAMS / "claims.yaml"
-RELATIONS = ("above", "below", "level")
+RELATIONS = ("above", "below", "level", "not_above", "not_below")
 CELL_KEYS = ("method", "scenario", "threshold", "protocol")
 CLAIM_KEYS = ("id", "a", "b", "metric", "relation", "sentence")
 PLACEHOLDERS = ("a", "b", "diff")
@@ -137,6 +139,10 @@ def holds(relation: str, lo: float, hi: float) -> bool:
         return hi < 0
     if relation == "level":
         return lo <= 0 <= hi
+    if relation == "not_above":
+        return lo <= 0
+    if relation == "not_below":
+        return hi >= 0
     raise ValueError(f"relation {relation!r}: expected one of {', '.join(RELATIONS)}")
 
 
@@ -185,7 +191,7 @@ def markdown(table: pd.DataFrame, study_name: str, n_boot: int = statistics.N_BO
     lines = [f"Claims of the `{study_name}` study (`params/claims.yaml`), recall or precision in %, mean [95 % "
              f"bootstrap interval, {n_boot} resamples]; difference: the paired bootstrap of a - b on the same "
              f"seeds, settings and queries. `above` holds when its interval lies above 0, `below` below 0, `level` "
-             f"when it contains 0.",
+             f"when it contains 0, `not_above` when it does not lie above 0, `not_below` when it does not lie below 0.",
              "", "| claim | sentence | difference a - b | relation | verdict |", "|---|---|---|---|---|"]
     for r in table.itertuples(index=False):
         sentence = r.sentence.format(a=_num(r.a_mean, r.a_lo, r.a_hi), b=_num(r.b_mean, r.b_lo, r.b_hi),
