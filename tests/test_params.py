@@ -176,12 +176,12 @@ def test_an_extending_study_merges_key_by_key(tmp_path):
 def test_an_extending_study_removes_what_it_sets_to_null(tmp_path):
     """A scenario or variant of the base that the extending file sets to null is not in the study (the colour study
     keeps two of quick's scenarios); a list set to null is a null value, as before. quick's `more_seeds` name
-    cells of s4: a study without s4 sets its own (one error naming the key otherwise)."""
+    cells of s2 and s4: a study without them sets its own (one error naming the key otherwise)."""
     child = tmp_path / "child.yaml"
     data = {"name": "child", "extends": "quick", "scenarios": {"s2": None, "s4": None},
             "variants": {"layout": None, "ours": {"thresholds": None}}}
     child.write_text(yaml.safe_dump(data))
-    with pytest.raises(StudyError, match="more_seeds\\[0\\].scenarios: gcn does not run on scenario 's4'"):
+    with pytest.raises(StudyError, match="more_seeds\\[0\\].scenarios: gcn does not run on scenario 's2'"):
         load_study(child)
     child.write_text(yaml.safe_dump({**data, "more_seeds": []}))
     s = load_study(child)
