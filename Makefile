@@ -100,12 +100,12 @@ bench-localizers: install
 bench-allocator: install
 	$(VENV)/bin/monolib bench --allocator --study quick --out figures/allocator.json
 
-# which epoch's model the trained encoders keep: the selection rules compared on the training split of the quick
-# study (run `make study` first): figures/selection.md
+# how the trained encoders train and which epoch's model they keep (graph encoders, image_triplet, imagenet_triplet):
+# the rules compared on the training split of the quick study (run `make study` first; resumable): figures/selection.md
 bench-selection: install
 	$(VENV)/bin/monolib bench --selection --study quick
 
-# the measurements behind the ImageNet methods' choices (VLAD whitening; the fine-tuning's output and learning rate)
+# the measurement behind imagenet_vlad's whitening (none): recall@1 with and without it
 bench-imagenet: install
 	$(VENV)/bin/monolib bench --imagenet-choices --study quick --out figures/imagenet_choices.json
 

@@ -17,8 +17,7 @@
   finished study costs, side by side: database bytes per frame, end-to-end milliseconds per query image
   (perception, graph, embedding, search), and recall@1;
 - `imagenet_choices` (`monolib bench --imagenet-choices`, `make bench-imagenet`): `imagenet_vlad` as it is against
-  PCA-whitened on the training split, and `imagenet_triplet`'s output and learning rate, recall@1 on both protocols
-  (what decided `pretrained.VLAD_WHITEN`, `TRIPLET_OUT` and `TRIPLET_LR_SCALE`);
+  PCA-whitened on the training split, recall@1 on both protocols (what decided `pretrained.VLAD_WHITEN`);
 - `allocator_side_by_side` (`monolib bench --allocator`, `make bench-allocator`): one image cell of a finished study
   with glibc's malloc as it is and with `device.keep_freed_memory`, in a new process each: seconds, system CPU,
   page faults, and whether the two wrote the same files.
@@ -44,7 +43,6 @@ from monolib.params import StudyError, load_study
 from monolib.perception import depth as depth_net, features, segmentation, stage as perception
 from monolib.report.results import collect
 from monolib.retrieval import evaluate, gcn, pretrained
-from monolib.retrieval.cell import run_cell
 
 
 def _time(fn, repeat: int) -> float:
@@ -520,19 +518,11 @@ def localizer_table(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def imagenet_choices(study_name: str = "quick", seeds=(0, 1), dims=(None, 128, 256, 512),
-                     triplet=((64, 1.0), (None, 1.0), (64, 0.1), (None, 0.1), (None, 0.01)), out: str | None = None) -> dict:
-    """The measurements behind two choices of `monolib.retrieval.pretrained`, recall@1 of both protocols on the
-    study's test split (`evaluate.evaluate_protocols`, the cells' evaluation):
-
-    - `imagenet_vlad` without and with PCA whitening learnt on the training split (`VLAD_WHITEN`), per seed;
-    - `imagenet_triplet`'s output (a linear layer to 64 dimensions, or the GeM vector L2-normalised) and learning
-      rate (the GCN's times a scale: `TRIPLET_OUT`, `TRIPLET_LR_SCALE`), seed 0, each a whole cell
-      (`run_cell` into a temporary folder)."""
-    import math
-    import tempfile
-
-
+def imagenet_choices(study_name: str = "quick", seeds=(0, 1), dims=(None, 128, 256, 512), out: str | None = None) -> dict:
+    """The measurement behind `pretrained.VLAD_WHITEN`: `imagenet_vlad` without and with PCA whitening learnt on the
+    training split, per seed, recall@1 of both protocols on the study's test split (`evaluate.evaluate_protocols`,
+    the cells' evaluation). (How `imagenet_triplet` trains is chosen on the training split alone:
+    `monolib.retrieval.model_selection`.)"""
     study = load_study(study_name)
     torch.set_num_threads(study.threads)
     sel = selection.select_frames(study, dataset.open_dataset(study), study.gcn.val_settings)
@@ -541,7 +531,7 @@ def imagenet_choices(study_name: str = "quick", seeds=(0, 1), dims=(None, 128, 2
     _, head = features.networks()
     keys, settings = [f.key for f in sel.test], [f.setting for f in sel.test]
     record = {"study": study.name, "machine": f"{platform.machine()} {platform.processor()}".strip(),
-              "date": time.strftime("%Y-%m-%d"), "vlad_whitening": [], "triplet": []}
+              "date": time.strftime("%Y-%m-%d"), "vlad_whitening": []}
     for seed in seeds:
         for d in dims:
             t = time.perf_counter()
@@ -553,38 +543,16 @@ def imagenet_choices(study_name: str = "quick", seeds=(0, 1), dims=(None, 128, 2
             record["vlad_whitening"].append(row)
             print(f"imagenet_vlad seed {seed}, whitened to {d or 'none (as it is)'}: {row['dimensions']}-d, "
                   + ", ".join(f"{k} {v}" for k, v in row.items() if k.startswith("recall")), flush=True)
-    chosen = (pretrained.TRIPLET_OUT, pretrained.TRIPLET_LR_SCALE)
-    try:
-        for out_dims, scale in triplet:
-            pretrained.TRIPLET_OUT, pretrained.TRIPLET_LR_SCALE = out_dims, scale
-            with tempfile.TemporaryDirectory() as tmp:
-                t = time.perf_counter()
-                c = run_cell(study, "imagenet_triplet", "rgb", math.inf, 0, out_dir=tmp, force=True)
-            row = {"seed": 0, "output": f"linear {out_dims}" if out_dims else "GeM, L2 (no projection)",
-                   "lr": study.gcn.lr * scale, "best_epoch": c["best_epoch"], "epochs_run": c["epochs_run"],
-                   **{f"recall@1_{p}": round(float(m["recall@1"]), 1) for p, m in c["metrics"].items()},
-                   "seconds": round(time.perf_counter() - t, 1), "chosen": (out_dims, scale) == chosen}
-            record["triplet"].append(row)
-            print(f"imagenet_triplet, output {row['output']}, lr {row['lr']:g}: best epoch {row['best_epoch']} of "
-                  f"{row['epochs_run']}, " + ", ".join(f"{k} {v}" for k, v in row.items() if k.startswith("recall")),
-                  flush=True)
-    finally:
-        pretrained.TRIPLET_OUT, pretrained.TRIPLET_LR_SCALE = chosen
     return _written(record, out, imagenet_choices_table)
 
 
 def imagenet_choices_table(record: dict) -> str:
     protos = [k for k in record["vlad_whitening"][0] if k.startswith("recall@1_")] if record["vlad_whitening"] else []
     head = " | ".join(p.replace("recall@1_", "recall@1 ") for p in protos)
-    lines = [f"**Choices of the ImageNet methods** (`monolib bench --imagenet-choices`, study `{record['study']}`, "
+    lines = [f"**Whitening of `imagenet_vlad`** (`monolib bench --imagenet-choices`, study `{record['study']}`, "
              f"{record['machine']}, {record['date']}; recall@1 on the test split, both protocols).", "",
              f"| imagenet_vlad | seed | dimensions | {head} |", "|---|---:|---:|" + "---:|" * len(protos)]
     for r in record["vlad_whitening"]:
         what = f"PCA-whitened to {r['whitened_dims']}" if r["whitened_dims"] else "as it is (chosen)"
         lines.append(f"| {what} | {r['seed']} | {r['dimensions']:,} | " + " | ".join(f"{r[p]:.1f}" for p in protos) + " |")
-    lines += ["", f"| imagenet_triplet (seed 0) | learning rate | best epoch / run | {head} |",
-              "|---|---:|---:|" + "---:|" * len(protos)]
-    for r in record["triplet"]:
-        lines.append(f"| {r['output']}{' (chosen)' if r['chosen'] else ''} | {r['lr']:g} | {r['best_epoch']} / "
-                     f"{r['epochs_run']} | " + " | ".join(f"{r[p]:.1f}" for p in protos) + " |")
     return "\n".join(lines) + "\n"

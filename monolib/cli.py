@@ -78,8 +78,7 @@ def _bench_parser(sub) -> None:
     p.add_argument("--localizers", action="store_true", help="instead: a localizer of each method of the finished "
                    "--study, side by side: database bytes per frame, ms per query image, recall@1 (minutes)")
     p.add_argument("--imagenet-choices", action="store_true", help="instead: imagenet_vlad of --study with and "
-                   "without PCA whitening, imagenet_triplet's output and learning rate; recall@1 on both protocols "
-                   "(about 10 minutes)")
+                   "without PCA whitening; recall@1 on both protocols (about a minute)")
     p.add_argument("--allocator", action="store_true", help="instead: one imagenet_triplet cell of the finished "
                    "--study with glibc's malloc as it is and with monolib's (MONOLIB_ALLOCATOR), side by side (minutes)")
     p.add_argument("--selection", action="store_true", help="instead: the model-selection rules of the trained "

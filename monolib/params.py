@@ -191,6 +191,10 @@ class MoreSeeds:
 
 
 SELECT = ("val_recall", "val_map", "val_loss", "last")  # the model-selection rules of `GCNSpec.select`
+# the `GCNSpec` keys of how an encoder is trained (not what it is): all that `image_training` may set
+TRAINING_KEYS = ("epochs", "lr", "schedule", "select", "patience", "min_epochs", "batch_size", "weight_decay",
+                 "margin")
+TRAINED_IMAGE_METHODS = ("image_triplet", "imagenet_triplet")  # image methods trained with the triplet loss
 SCHEDULES = ("constant", "cosine")                      # the learning-rate schedules of `GCNSpec.schedule`
 TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
 PAPER, SIBLINGS = "paper", "siblings"  # the test protocols: the paper's, and pairs of sibling settings
@@ -245,6 +249,8 @@ class Study:
     methods: list[str] = field(default_factory=lambda: ["gcn"])
     gcn: GCNSpec = field(default_factory=GCNSpec)
     variants: dict[str, Variant] = field(default_factory=dict)
+    image_training: dict[str, dict] = field(default_factory=dict)  # a learned image encoder's training
+                                             # (`TRAINING_KEYS` over `gcn:`'s), per method of TRAINED_IMAGE_METHODS
     protocol: Protocol = field(default_factory=Protocol)
     path: Optional[str] = None               # the file it was loaded from (set by `load_study`)
     fold: Optional[int] = None               # not a study key: the fold a stage works on (`at_fold`), with
@@ -285,9 +291,12 @@ class Study:
         return METHODS[method][0]
 
     def gcn_spec(self, method: str) -> GCNSpec:
-        """The encoder spec of a graph method: the study's `gcn:` with the variant's overrides."""
+        """The encoder spec of a trained method: the study's `gcn:` with a variant's overrides, or with a learned
+        image encoder's `image_training` (its training only: the image encoders' architecture is their own)."""
         if method in self.variants:
             return dataclasses.replace(self.gcn, **self.variants[method].gcn)
+        if method in self.image_training:
+            return dataclasses.replace(self.gcn, **self.image_training[method])
         return self.gcn
 
     def graph_methods(self) -> list[str]:
@@ -668,6 +677,14 @@ def _check_methods(study: Study) -> None:
         if v.ablation_of is not None and v.ablation_of not in study.graph_methods():
             _bad(f"variants.{vname}.ablation_of", f"expected a graph method of the study "
                  f"({', '.join(study.graph_methods())}), got {v.ablation_of!r}")
+    for mname, over in study.image_training.items():
+        where = f"image_training.{mname}"
+        if mname not in TRAINED_IMAGE_METHODS:
+            _bad(where, f"not a learned image encoder (those trained with the triplet loss: "
+                        f"{', '.join(TRAINED_IMAGE_METHODS)}; a graph encoder's training is `gcn:` or its variant's)")
+        for key in over:
+            _one_of(f"{where}.{key}", key, TRAINING_KEYS)
+        specs[where] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **over}, where)
     for where, g in specs.items():
         _check_encoder(study, where, g)
 

@@ -3,7 +3,7 @@ import pandas as pd
 import pytest
 
 from monolib.params import load_study
-from monolib.retrieval.model_selection import RULES, TRAININGS, rules_table, study_rule, study_training
+from monolib.retrieval.model_selection import RULES, TRAININGS, recommend, rules_table, study_rule, study_training
 
 
 def histories(peaks: dict[str, int], seeds: int = 3, epochs: int = 40) -> pd.DataFrame:
@@ -37,3 +37,72 @@ def test_the_study_rule_is_the_one_its_gcn_settings_train_by():
     assert study_rule(quick).name == "lr 0.003: fixed 20 epochs"
     smoke = load_study("smoke", check_files=False)  # 3 epochs: no rule of the bench
     assert study_training(smoke) == TRAININGS[0] and study_rule(smoke) is None
+
+
+def test_the_image_encoders_are_compared_in_groups_of_their_own():
+    """A rule's row over all runs is taken per group: the graph encoders together, each learned image encoder
+    alone; the study's rule of each is the one its `image_training` trains by."""
+    runs = histories({"lr 0.001": 2})
+    image = histories({"lr 0.001": 30}).assign(method="image_triplet", threshold=float("inf"))
+    table = rules_table(pd.concat([runs, image]), [r for r in RULES if r.name == "fixed 20 epochs"])
+    overall = table[table["method"] == "all"].set_index("group")
+    assert sorted(overall.index) == ["graph", "image_triplet"]
+    assert overall.loc["graph", "runs"] == 3 and overall.loc["image_triplet", "runs"] == 3
+    quick = load_study("quick", check_files=False)
+    for m in ("image_triplet", "imagenet_triplet"):
+        spec = quick.gcn_spec(m)
+        rule = study_rule(quick, m)
+        assert rule is not None and rule.epochs == spec.epochs and study_training(quick, m).lr == spec.lr
+
+
+@pytest.mark.slow
+def test_runs_of_every_encoder_are_recorded_per_epoch_and_resumed(smoke_study):
+    """`curves` on the smoke study (one family held out): a graph encoder and both image encoders trained two
+    epochs each, every epoch recorded with its inner test recall@1; each run written to its file, and a second
+    call reads the files instead of training again."""
+    import math
+
+    from monolib.retrieval import model_selection as ms
+
+    study = load_study("smoke")
+    training = ms.Training("smoke test", 1e-3, "constant", 2, (ms.GRAPH, "image_triplet", "imagenet_triplet"))
+    configs = (("gcn", 1.0), ("image_triplet", math.inf), ("imagenet_triplet", math.inf))
+    for job in [(m, t, 0, False, training) for m, t in configs]:
+        ms.run_path(study, job, 1).unlink(missing_ok=True)
+    df = ms.curves(study, configs, seeds=[0], workers=1, trainings=(training,), families=1)
+    assert sorted(df["method"].unique()) == ["gcn", "image_triplet", "imagenet_triplet"]
+    assert (df.groupby("method")["epoch"].apply(list) == [[1, 2]] * 3).all()
+    assert df["inner_recall@1"].between(0, 1).all() and df["val_loss"].notna().all()
+    path = ms.run_path(study, ("imagenet_triplet", math.inf, 0, False, training), 1)
+    marked = pd.read_csv(path).assign(**{"inner_recall@1": 0.123})
+    marked.to_csv(path, index=False)
+    again = ms.curves(study, configs, seeds=[0], workers=1, trainings=(training,), families=1)
+    assert (again.loc[again["method"] == "imagenet_triplet", "inner_recall@1"] == 0.123).all()
+    pd.testing.assert_frame_equal(again[again["method"] != "imagenet_triplet"].reset_index(drop=True),
+                                  df[df["method"] != "imagenet_triplet"].reset_index(drop=True))
+
+
+def test_the_criterion_chooses_the_lowest_spread_among_the_best_and_names_those_level_with_it():
+    rows = [("a", 60.0, 4.0, 20), ("b", 59.5, 2.0, 20), ("c", 59.2, 2.8, 20), ("d", 58.0, 0.5, 20),
+            ("e", 70.0, 0.1, 40)]
+    table = pd.DataFrame([{"rule": r, "group": "graph", "method": "all", "inner_recall@1": rec, "seed_sd": sd,
+                           "epochs_run": ep} for r, rec, sd, ep in rows])
+    assert recommend(table, "graph") == ["b", "c"]  # e: over the budget; d: a point and a half below the best
+    assert recommend(table.assign(group="image_triplet"), "image_triplet") == ["e"]  # no budget: every rule
+    assert recommend(table, "imagenet_triplet") == []
+
+
+def test_the_committed_comparison_chose_the_rule_each_encoder_of_quick_trains_by():
+    """figures/selection.md's table: each group's rule in quick (`gcn:` and `image_training`) is the one the
+    criterion chooses or one level with it."""
+    from pathlib import Path
+
+    from monolib import paths
+
+    path = Path(paths.ROOT) / "figures" / "selection_rules.csv"
+    if not path.is_file():
+        pytest.skip("figures/selection_rules.csv not written (make bench-selection)")
+    table = pd.read_csv(path)
+    quick = load_study("quick", check_files=False)
+    for method, grp in (("gcn", "graph"), ("image_triplet", "image_triplet"), ("imagenet_triplet", "imagenet_triplet")):
+        assert study_rule(quick, method).name in recommend(table, grp), method

@@ -229,11 +229,39 @@ def test_threshold_zero_and_no_siblings_protocol_are_allowed(tmp_path):
      "more_seeds\\[0\\].seeds: missing \\(each entry needs method, scenarios, thresholds, seeds\\)"),
     (lambda d: d.update(more_seeds=[{"method": "gcn", "scenarios": ["s1"], "thresholds": [0], "seeds": []}]),
      "more_seeds\\[0\\].seeds: expected at least one seed"),
+    (lambda d: d.update(image_training={"orb_bow": {"lr": 0.01}}),
+     "image_training.orb_bow: not a learned image encoder \\(those trained with the triplet loss: image_triplet, "
+     "imagenet_triplet"),
+    (lambda d: d.update(image_training={"image_triplet": {"hidden": 32}}),
+     "image_training.image_triplet.hidden: expected one of epochs, lr, schedule"),
+    (lambda d: d.update(image_training={"image_triplet": {"epochs": 0}}),
+     "image_training.image_triplet.layers: layers and epochs must be at least 1"),
+    (lambda d: d.update(image_training={"imagenet_triplet": {"select": "best"}}),
+     "image_training.imagenet_triplet.select: expected one of val_recall"),
+    (lambda d: d.update(image_training={"imagenet_triplet": 0.001}),
+     "image_training.imagenet_triplet: expected a mapping, got 0.001"),
 ])
 def test_values_the_code_cannot_use_are_refused_when_the_study_loads(tmp_path, change, key):
     """Each bad value: one StudyError naming the key and what is expected, before any work."""
     with pytest.raises(StudyError, match=key):
         load_study(write(tmp_path, change))
+
+
+def test_image_training_trains_the_image_encoders_and_nothing_else(tmp_path):
+    """`image_training`: a learned image encoder's training keys over `gcn:`'s reach its spec and its cells' key;
+    the graph encoders and the other image encoder keep theirs."""
+    from monolib.retrieval.cell import cell_key
+
+    base = load_study(write(tmp_path, lambda d: d.update(methods=["gcn", "image_triplet", "imagenet_triplet"])))
+    study = load_study(write(tmp_path, lambda d: d.update(methods=["gcn", "image_triplet", "imagenet_triplet"],
+                                                          image_training={"imagenet_triplet": {"lr": 0.0003,
+                                                                                               "epochs": 7}})))
+    spec = study.gcn_spec("imagenet_triplet")
+    assert (spec.lr, spec.epochs) == (0.0003, 7) and spec.hidden == study.gcn.hidden
+    assert study.gcn_spec("image_triplet") == study.gcn_spec("gcn") == study.gcn == base.gcn
+    key = lambda s, m: cell_key(s, m, "rgb", math.inf, 0, inputs="same")  # noqa: E731
+    assert key(study, "imagenet_triplet") != key(base, "imagenet_triplet")
+    assert key(study, "image_triplet") == key(base, "image_triplet")
 
 
 def test_projection_is_a_study_key_each_scenario_may_override(tmp_path):

@@ -22,7 +22,8 @@ import pandas as pd
 from monolib import io
 from monolib.params import PAPER
 from monolib.report.results import cell_files, cell_metrics, natural_key, threshold_value
-from monolib.retrieval.model_selection import Rule, replay, study_training
+from monolib.params import TRAINED_IMAGE_METHODS
+from monolib.retrieval.model_selection import replay, spec_rule, study_training
 
 EARLY = 2  # a kept model from epoch 1 or 2: trained for hardly anything
 COLUMNS = ["method", "scenario", "threshold", "seeds", "epochs_run_median", "epochs_run_min", "epochs_run_max",
@@ -166,6 +167,12 @@ def fig_curves(curves: pd.DataFrame, path: Path, kept: dict) -> Optional[Path]:
     return path
 
 
+def _training_of(g) -> str:
+    """How a spec trains, in its keys: learning rate, schedule, epochs, selection."""
+    return (f"lr {g.lr:g}, schedule {g.schedule}, epochs {g.epochs}, select {g.select}"
+            + ("" if g.select == "last" else f", min_epochs {g.min_epochs}, patience {g.patience}"))
+
+
 def write(study_name: str, out: Path, grid: Optional[Collection[str]] = None, study=None) -> dict[str, Path]:
     """training.md, training.csv and (with selection_curves.csv in `out`) training_curves.png; {} without a trained
     cell."""
@@ -176,10 +183,9 @@ def write(study_name: str, out: Path, grid: Optional[Collection[str]] = None, st
     table = training_table(cells)
     selection = None
     if study is not None:
-        g = study.gcn
-        selection = (f"`gcn.lr: {g.lr:g}`, `schedule: {g.schedule}`, `epochs: {g.epochs}`, `select: {g.select}`"
-                     + ("" if g.select == "last" else f", `min_epochs: {g.min_epochs}`, `patience: {g.patience}`")
-                     + " (figures/selection.md: the rules compared)")
+        keys = {"gcn": "gcn", **{m: f"image_training.{m}" for m in TRAINED_IMAGE_METHODS if m in study.methods}}
+        selection = "; ".join(f"`{key}`: " + _training_of(study.gcn_spec(m)) for m, key in keys.items()) \
+            + " (figures/selection.md: the rules compared)"
     written = {"training_md": out / "training.md", "training_csv": out / "training.csv"}
     io.write_text(written["training_csv"], table.to_csv(index=False, float_format="%.6g", lineterminator="\n"))
     io.write_text(written["training_md"], markdown(table, study_name, selection))
@@ -189,7 +195,7 @@ def write(study_name: str, out: Path, grid: Optional[Collection[str]] = None, st
         own = study_training(study)
         if "training" in curves:  # the runs of the study's own training (none: the figure is left out)
             curves = curves[curves["training"] == (own.name if own else None)]
-        rule = Rule("study", study.gcn.select, study.gcn.min_epochs, study.gcn.patience, study.gcn.epochs)
+        rule = spec_rule(study.gcn)
         kept = {(m, float(t), int(s)): replay(run.sort_values("epoch"), rule)[0]
                 for (m, t, s), run in curves.groupby(["method", "threshold", "seed"])}
         png = fig_curves(curves, out / "training_curves.png", kept)

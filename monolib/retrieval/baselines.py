@@ -4,7 +4,8 @@
 - `orb_bow`: ORB keypoints + a bag of visual words learnt on the training split, tf-idf weighted, L2-normalised
   (the classic hand-crafted place-recognition descriptor).
 - `image_triplet`: the "texture-based" learnt global descriptor the paper argues against indoors: a small CNN on
-  the RGB frame, trained from scratch with the GCN's triplet loss, triplets, data split and budget.
+  the RGB frame, trained from scratch with the GCN's triplet loss, triplets and data split, as long as the study's
+  `image_training.image_triplet` says (chosen on the training split by `monolib bench --selection`).
 """
 from __future__ import annotations
 
@@ -245,12 +246,15 @@ class CNNResult:
 
 
 def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torch.Tensor, val_settings, spec,
-                  seed: int, batch_input, embed, threads: int = 2, deterministic: bool = True) -> CNNResult:
+                  seed: int, batch_input, embed, threads: int = 2, deterministic: bool = True,
+                  on_epoch=None) -> CNNResult:
     """The GCN's training loop (`monolib.retrieval.gcn.train`) for an encoder of images (or of their features):
     Adam, triplet margin loss, fresh per-setting triplets each epoch, the model kept and the stop by `spec`'s
     selection (`monolib.retrieval.gcn.EarlyStopping`). `make_model()` builds the encoder (after the seeding); `batch_input(x, gen)` turns a
     batch of `train_x` rows (anchors, positives, negatives) into the model's input on the CPU, augmented with the
-    generator `gen`; `embed(model, val_x)` gives the validation embeddings."""
+    generator `gen`; `embed(model, val_x)` gives the validation embeddings. `on_epoch(model)`, when given, adds
+    columns to each epoch's history row, as in `monolib.retrieval.gcn.train` (it must not draw from the seed's
+    random streams)."""
     torch.set_num_threads(threads)
     gen = seed_everything(int(seed), deterministic)
     rng = np.random.default_rng(seed)
@@ -280,14 +284,15 @@ def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torc
             losses.append(loss.item() * b)
         train_loss = sum(losses) / len(a)
         val_emb = embed(model, val_x) if len(val_x) else None
-        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn):
+        extra = on_epoch(model) if on_epoch is not None else None
+        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn, False, extra):
             break
     model.load_state_dict(stopper.best_state)
     return CNNResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)
 
 
 def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tensor, val_settings, spec, seed: int,
-              threads: int = 2, augment: bool = True, deterministic: bool = True) -> CNNResult:
+              threads: int = 2, augment: bool = True, deterministic: bool = True, on_epoch=None) -> CNNResult:
     """`train_encoder` with the from-scratch `ImageEncoder` on uint8 images (flip and colour jitter)."""
     def batch_input(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
         x = x.float() / 255.0
@@ -296,12 +301,13 @@ def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tens
         return (x - 0.5) / 0.25
 
     return train_encoder(ImageEncoder, train_images, train_settings, val_images, val_settings, spec, seed,
-                         batch_input, cnn_embed, threads, deterministic)
+                         batch_input, cnn_embed, threads, deterministic, on_epoch)
 
 
 def image_triplet_embed(study, selection, seed: int, spec=None):
-    """(test embeddings, extra, history, state) for `image_triplet`; `spec` defaults to the study's GCN spec."""
-    spec = spec or study.gcn
+    """(test embeddings, extra, history, state) for `image_triplet`; `spec` defaults to the study's spec of the
+    method (`Study.gcn_spec`: `gcn:` with `image_training`)."""
+    spec = spec or study.gcn_spec("image_triplet")
     t = time.perf_counter()
     tr, va, te = (image_tensor(fs) for fs in (selection.train, selection.val, selection.test))
     load_s = time.perf_counter() - t

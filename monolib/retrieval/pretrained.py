@@ -11,9 +11,10 @@ stride 32, 6 x 8 positions at 256x192).
   (seeded), hard-assignment VLAD with intra-normalisation, then L2; with `VLAD_WHITEN` dimensions, PCA-whitened
   on the training split's VLAD vectors and L2-normalised again.
 - `imagenet_triplet`: the learnt image baseline from ImageNet: the head (initialised from ImageNet) and GeM,
-  L2-normalised (`TRIPLET_OUT`: no projection), fine-tuned with the GCN's triplet loss, triplets, split and budget
-  at a tenth of its learning rate (`TRIPLET_LR_SCALE`)
-  (`monolib.retrieval.baselines.train_encoder`, the loop of the from-scratch `image_triplet`). The trunk stays
+  L2-normalised (`TRIPLET_OUT`: no projection), fine-tuned with the GCN's triplet loss, triplets and split, trained
+  as the study's `image_training.imagenet_triplet` says (its learning rate and epochs, chosen on the training split
+  by `monolib bench --selection`) (`monolib.retrieval.baselines.train_encoder`, the loop of the from-scratch
+  `image_triplet`). The trunk stays
   frozen, as NetVLAD trains only the last convolutional block of its network (Arandjelović et al., CVPR 2016):
   its features are computed once per frame, so that the fine-tuning fits the study's CPU budget; the augmentation
   is a horizontal flip of the feature map (colour jitter would need the trunk again).
@@ -21,7 +22,6 @@ stride 32, 6 x 8 positions at 256x192).
 from __future__ import annotations
 
 import copy
-import dataclasses
 import time
 
 import numpy as np
@@ -43,12 +43,9 @@ VLAD_SAMPLE = 20_000      # local descriptors the vocabulary is learnt from (see
 VLAD_ITERS = 20
 VLAD_WHITEN = None        # PCA-whitened dimensions (None: VLAD as it is; whitening lost 4-14 points of recall@1 on quick,
                           # learnt from its 960 training vectors: `monolib bench --imagenet-choices`)
-# The fine-tuned encoder's output and learning rate, chosen by `monolib bench --imagenet-choices` on quick (seed 0,
-# figures/imagenet_choices.md): the GeM vector L2-normalised (no projection: training starts from `imagenet_gem`)
-# at a tenth of the GCN's learning rate, as pretrained layers are fine-tuned; a new 64-d linear layer, or the GCN's
-# own learning rate, moved the head far from ImageNet and lost 7-21 points of recall@1.
+# The fine-tuned encoder's output: the GeM vector L2-normalised, no projection, so that training starts from the
+# off-the-shelf `imagenet_gem` and the pretrained head is fine-tuned rather than fed to a new random layer.
 TRIPLET_OUT = None
-TRIPLET_LR_SCALE = 0.1
 HEAD_BATCH = 128
 
 
@@ -169,14 +166,22 @@ def _flip(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return torch.where(flip[:, None, None, None], x.flip(3), x)
 
 
+def train_head(head: nn.Module, trunk: dict, selection, spec, seed: int, threads: int, deterministic: bool = True,
+               on_epoch=None):
+    """`train_encoder` of the `HeadEncoder` over `head` on float16 trunk features (`trunk`: {"train", "val"}) of
+    the selection's frames, flipped at random: the training of `imagenet_triplet`."""
+    return train_encoder(lambda: HeadEncoder(head, TRIPLET_OUT), torch.from_numpy(trunk["train"]),
+                         [f.setting for f in selection.train], torch.from_numpy(trunk["val"]),
+                         [f.setting for f in selection.val], spec, seed, _flip, head_embed, threads, deterministic,
+                         on_epoch)
+
+
 def triplet_embed(study, selection, trunk, head: nn.Module, seed: int, spec=None):
-    """(test embeddings, extra, history, state) for `imagenet_triplet`; `trunk`: {split: float16 features}."""
-    spec = spec or study.gcn
-    tr, va, te = (torch.from_numpy(trunk[k]) for k in ("train", "val", "test"))
-    spec = dataclasses.replace(spec, lr=spec.lr * TRIPLET_LR_SCALE)
-    result = train_encoder(lambda: HeadEncoder(head, TRIPLET_OUT), tr, [f.setting for f in selection.train], va,
-                           [f.setting for f in selection.val], spec, seed, _flip, head_embed,
-                           threads=study.threads, deterministic=study.deterministic)
+    """(test embeddings, extra, history, state) for `imagenet_triplet`; `trunk`: {split: float16 features};
+    `spec` defaults to the study's spec of the method (`Study.gcn_spec`: `gcn:` with `image_training`)."""
+    spec = spec or study.gcn_spec("imagenet_triplet")
+    te = torch.from_numpy(trunk["test"])
+    result = train_head(head, trunk, selection, spec, seed, study.threads, study.deterministic)
     emb = head_embed(result.model, te).numpy().astype(np.float32)
     extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history), "train_s": result.seconds,
              "trained_parameters": int(sum(p.numel() for p in result.model.parameters()))}
