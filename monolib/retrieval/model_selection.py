@@ -104,10 +104,7 @@ RULES = (
     Rule("lr 0.003: val loss, patience 6", "val_loss", 1, 6, 40, TRAININGS[1].name),
     Rule("lr 0.0003: val mAP from epoch 10, patience 6", "val_map", 10, 6, 40, TRAININGS[3].name),
     Rule("lr 0.0003: val loss, patience 6", "val_loss", 1, 6, 40, TRAININGS[3].name),
-    Rule("lr 0.0003: fixed 10 epochs", "last", 1, 40, 10, TRAININGS[3].name),
-    Rule("lr 0.0003: fixed 20 epochs", "last", 1, 40, 20, TRAININGS[3].name),
-    Rule("lr 0.0003: fixed 30 epochs", "last", 1, 40, 30, TRAININGS[3].name),
-    Rule("lr 0.0003: fixed 40 epochs", "last", 1, 40, 40, TRAININGS[3].name),
+    *(Rule(f"lr 0.0003: fixed {n} epochs", "last", 1, 40, n, TRAININGS[3].name) for n in (10, 20, 30, 40)),
 )
 
 
@@ -170,21 +167,23 @@ def run_spec(study: Study, method: str, training: Training) -> gcn.GCNSpec:
                                min_epochs=1, lr=training.lr, schedule=training.schedule, epochs=training.epochs)
 
 
-def run_key(study: Study, job: tuple, families: int = INNER_FAMILIES) -> str:
-    """The key of one run (`curves`' job): what it reads and computes, whatever the other runs."""
+def run_key(study: Study, job: tuple, families: int = INNER_FAMILIES, inputs: Optional[str] = None) -> str:
+    """The key of one run (`curves`' job): what it reads and computes, whatever the other runs. `inputs`: the
+    method's `cell.inputs_key`, when the caller holds it."""
     method, threshold, seed, with_test, training = job
-    graph = group(method) == GRAPH
-    return key_of({"inputs": cell.inputs_key(study, method, SCENARIO if graph else "rgb"),
+    if inputs is None:
+        inputs = cell.inputs_key(study, method, SCENARIO if group(method) == GRAPH else "rgb")
+    return key_of({"inputs": inputs,
                    "encoder": dataclasses.asdict(run_spec(study, method, training)), "threshold": threshold,
                    "seed": seed, "test": with_test, "inner": [families, INNER_POSITIVES, study.seed],
                    "val": study.gcn.val_settings, "deterministic": study.deterministic,
                    "code": versions.code_version("cells")})
 
 
-def run_path(study: Study, job: tuple, families: int = INNER_FAMILIES) -> Path:
+def run_path(study: Study, job: tuple, families: int = INNER_FAMILIES, inputs: Optional[str] = None) -> Path:
     """``runs/<study>/selection/<training>/<method>__t<threshold>__s<seed>__<key>.csv``: one run's epochs."""
     method, threshold, seed, _, training = job
-    name = f"{method}__t{paths.threshold_tag(threshold)}__s{seed}__{run_key(study, job, families)[:16]}.csv"
+    name = f"{method}__t{paths.threshold_tag(threshold)}__s{seed}__{run_key(study, job, families, inputs)[:16]}.csv"
     return paths.study_dir(study.name) / "selection" / training.name.replace(" ", "_").replace(",", "") / name
 
 
@@ -222,7 +221,7 @@ def _curve(job) -> list[dict]:
     read from its file when an earlier comparison ran it (`run_path`), else trained and written there."""
     method, threshold, seed, with_test, training = job
     study = _SHARED["study"]
-    path = run_path(study, job, _SHARED["families"])
+    path = run_path(study, job, _SHARED["families"], _SHARED["inputs"][method])
     if path.is_file():
         return pd.read_csv(path).to_dict("records")
     spec = run_spec(study, method, training)
@@ -261,7 +260,8 @@ def curves(study: Study, configs=CONFIGS, seeds: Optional[list[int]] = None, wor
     jobs = [(m, float(t), int(s), tr == study_training(study, m) and s in seeds[:TEST_CURVE_SEEDS], tr)
             for tr in trainings for m, t in configs if m in known and trains(tr, m) for s in seeds]
     jobs.sort(key=lambda j: group(j[0]) == GRAPH)  # the long runs (the image encoders') first, then the short ones
-    shared = dict(study=study, split=split, test=graphs["test"], families=families)
+    inputs = {m: cell.inputs_key(study, m, SCENARIO if group(m) == GRAPH else "rgb") for m in {j[0] for j in jobs}}
+    shared = dict(study=study, split=split, test=graphs["test"], families=families, inputs=inputs)
     if any(group(j[0]) != GRAPH for j in jobs):
         sel = selection.select_frames(study, dataset.open_dataset(study), study.gcn.val_settings)
         shared.update(frames=inner_split({"train": sel.train, "val": sel.val}, families, study.seed), test_frames=sel.test)
