@@ -34,10 +34,15 @@ def threshold_json(threshold: float) -> float | str:
     return t if math.isfinite(t) else "inf"
 
 
+def cell_stem(scenario: str, threshold: float) -> str:
+    """The part of a cell's folder name that its seeds share: ``<scenario>__t<threshold>``."""
+    return f"{scenario}__t{threshold_tag(threshold)}"
+
+
 def cell_name(scenario: str, threshold: float, seed: int, fold: int | None = None) -> str:
     """A cell's folder name: ``<scenario>__t<threshold>__s<seed>``, and ``__f<fold>`` for a fold of a study with
     folds by volume (a study without folds keeps the names it always had)."""
-    name = f"{scenario}__t{threshold_tag(threshold)}__s{int(seed)}"
+    name = f"{cell_stem(scenario, threshold)}__s{int(seed)}"
     return name if fold is None else f"{name}__f{int(fold)}"
 
 

@@ -204,7 +204,7 @@ def markdown(table: pd.DataFrame, study_name: str, n_boot: int = statistics.N_BO
 
 def in_grid(claim: Claim, grid: Collection[str]) -> bool:
     """Whether both cells of `claim` are cells of a grid (cell names ``method/scenario__t<t>__s<seed>``)."""
-    prefixes = {f"{c.method}/{c.scenario}__t{paths.threshold_tag(c.threshold)}__s" for c in (claim.a, claim.b)}
+    prefixes = {f"{c.method}/{paths.cell_stem(c.scenario, c.threshold)}__s" for c in (claim.a, claim.b)}
     return all(any(name.startswith(p) for name in grid) for p in prefixes)
 
 
