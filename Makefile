@@ -7,6 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 STUDY ?= quick
 NEED_GB ?= 7
+TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
@@ -22,7 +23,10 @@ $(STAMP): pyproject.toml
 	the virtual environment $(VENV)/ needs about $(NEED_GB) GB (torch 2.14.1 with its CUDA libraries). Free some space and run make again.')"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	$(PY) -m pip install --quiet --no-compile -e '.[test]'
+	@# byte-compiled on every core (pip compiles on one: 40 s of a 2-core install); a file of another Python's syntax
+	@# (torch ships a few for 3.12) fails here as pip lets it fail
+	@$(PY) -m compileall -qq -j 0 $(VENV)/lib > /dev/null || true
 	@if git rev-parse --git-dir >/dev/null 2>&1; then $(VENV)/bin/nbstripout --install --attributes .gitattributes; fi
 	touch $(STAMP)
 
@@ -71,8 +75,10 @@ zoo-pilot: install
 # every cell must run, and each cell marked # NBVAL_CHECK_OUTPUT must print what the committed notebook holds (its
 # outputs survive the git filter through nbstripout's keep_output metadata, see notebooks/conftest.py). When a change
 # moves those numbers on purpose: python tests/refresh_notebook_outputs.py, then review the diff.
+# On TEST_WORKERS processes (pytest-xdist): the tests that share the checkout's runs/ folder run on one of them in
+# file order, the rest beside them (tests/conftest.py, `group_of`). TEST_WORKERS=0: one process.
 test: install
-	$(PY) -m pytest tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
+	$(PY) -m pytest -n $(TEST_WORKERS) tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
 
 # the quick loop: the unit tests, without the tests marked slow (the smoke study, papermill, nbval, network training)
 test-fast: install

@@ -20,6 +20,8 @@ Each BatchNorm2d contributes 5 state-dict entries (weight, bias, running_mean, r
 """
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -85,23 +87,46 @@ def test_key_counts_from_original_code():
         assert len(set(original_keys(b))) == len(original_keys(b))
 
 
+def shapes_of(backbone):
+    """The project's model on the `meta` device: the names, shapes and dtypes of its state without the seconds of
+    a random initialisation (ResNeXt101-32x8d holds 88M weights)."""
+    with torch.device("meta"):
+        return depth.build_leres(backbone)
+
+
+def uninitialised(backbone):
+    """The project's model with storage and no initialisation, for a strict load that overwrites every tensor."""
+    return shapes_of(backbone).to_empty(device="cpu")
+
+
+POOL = 1 << 20  # standard normal values that each tensor takes a slice of (tiled), at an offset of its own
+
+
+def _normal(shape, pool: torch.Tensor, index: int) -> torch.Tensor:
+    n = math.prod(shape)
+    start = (index * 7919) % POOL
+    return pool.repeat(-(-(start + n) // POOL))[start : start + n].reshape(shape).clone()
+
+
 def random_original_state(model, backbone, seed=0):
-    """Random tensors, in the original layout, of the shapes of `model`'s corresponding tensors (BN stats too)."""
+    """Random tensors, in the original layout, of the shapes of `model`'s corresponding tensors (BN stats too):
+    every tensor a slice of its own of one seeded pool of normal values, so that no two tensors are alike."""
     gen = torch.Generator().manual_seed(seed)
+    pool = torch.randn(POOL, generator=gen)
     target = model.state_dict()
     state = {}
-    for k in original_keys(backbone):
+    for i, k in enumerate(original_keys(backbone)):
         ref = target[project_name(k)]  # KeyError here: the project's model lacks a tensor of the original
         if k.endswith("num_batches_tracked"):
             v = torch.randint(1, 10_000, (), generator=gen, dtype=ref.dtype)
         elif k.endswith("running_var"):
-            v = 0.5 + torch.rand(ref.shape, generator=gen)
+            v = 0.5 + _normal(ref.shape, pool, i).abs()
         elif k.endswith("running_mean") or k.endswith("bias"):
-            v = 0.1 * torch.randn(ref.shape, generator=gen)
+            v = 0.1 * _normal(ref.shape, pool, i)
         elif ref.dim() == 1:  # BN weight
-            v = 1.0 + 0.1 * torch.randn(ref.shape, generator=gen)
+            v = 1.0 + 0.1 * _normal(ref.shape, pool, i)
         else:  # conv weight, roughly variance-preserving so a deep forward stays finite
-            v = torch.randn(ref.shape, generator=gen) * (1.0 / ref[0].numel()) ** 0.5
+            v = _normal(ref.shape, pool, i) * (1.0 / math.prod(ref.shape[1:])) ** 0.5
         state[k] = v.to(ref.dtype)
     return state
 
@@ -115,7 +140,7 @@ def save(path, state, prefix=""):
 
 def direct(backbone, state):
     """A model into which the same tensors are put directly (project names, load_state_dict)."""
-    ref = depth.build_leres(backbone)
+    ref = uninitialised(backbone)
     ref.load_state_dict({project_name(k): v for k, v in state.items()}, strict=True)
     return ref.eval()
 
@@ -129,7 +154,7 @@ def assert_same_tensors(model, state):
 
 @pytest.mark.parametrize("prefix", ["", "module."])
 def test_resnet50_original_layout_loads(tmp_path, prefix):
-    state = random_original_state(depth.build_leres("resnet50"), "resnet50")
+    state = random_original_state(shapes_of("resnet50"), "resnet50")
     # spot checks of shapes against the original code (Resnet.py, network_auxi.py)
     assert state[ENC + "layer1.0.conv1.weight"].shape == (64, 64, 1, 1)
     assert state[ENC + "layer4.2.conv3.weight"].shape == (2048, 512, 1, 1)
@@ -155,14 +180,14 @@ def test_resnet50_original_layout_loads(tmp_path, prefix):
 
 @pytest.mark.slow
 def test_resnext101_original_layout_loads(tmp_path):
-    state = random_original_state(depth.build_leres("resnext101_32x8d"), "resnext101_32x8d")
+    state = random_original_state(shapes_of("resnext101_32x8d"), "resnext101_32x8d")
     # Resnext_torch.py: width = planes * 8/64 * 32 -> 256 in layer1, grouped 3x3 conv (32 groups)
     assert state[ENC + "layer1.0.conv1.weight"].shape == (256, 64, 1, 1)
     assert state[ENC + "layer1.0.conv2.weight"].shape == (256, 8, 3, 3)
     assert state[ENC + "layer3.22.conv3.weight"].shape == (1024, 1024, 1, 1)
     path = save(tmp_path / "res101.pth", state, "module.")
 
-    model = depth.load_adelai_checkpoint(depth.build_leres("resnext101_32x8d"), path)
+    model = depth.load_adelai_checkpoint(uninitialised("resnext101_32x8d"), path)
     assert_same_tensors(model, state)
     x = torch.randn(1, 3, 32, 32, generator=torch.Generator().manual_seed(1))  # tiny: ResNeXt101 is heavy
     with torch.no_grad():
@@ -172,7 +197,7 @@ def test_resnext101_original_layout_loads(tmp_path):
 
     # the ResNeXt101 file into a ResNet50 model: wrong architecture, a ValueError naming the file
     with pytest.raises(ValueError, match=r"res101\.pth.*does not match.*0 missing keys; 306 unexpected keys.*; [1-9]\d* keys of the wrong shape"):
-        depth.load_adelai_checkpoint(depth.build_leres("resnet50"), path)
+        depth.load_adelai_checkpoint(uninitialised("resnet50"), path)
 
 
 def test_project_layout_still_loads(tmp_path):
@@ -182,18 +207,18 @@ def test_project_layout_still_loads(tmp_path):
             m.running_mean.normal_()
     path = tmp_path / "own.pth"
     torch.save({"depth_model": {f"module.depth_model.{k}": v for k, v in src.state_dict().items()}}, path)
-    dst = depth.load_adelai_checkpoint(depth.build_leres("resnet50"), path)
+    dst = depth.load_adelai_checkpoint(uninitialised("resnet50"), path)
     for (k, a), b in zip(src.state_dict().items(), dst.state_dict().values()):
         assert torch.equal(a, b), k
 
 
 @pytest.fixture(scope="module")
 def res50_state():
-    return random_original_state(depth.build_leres("resnet50"), "resnet50")
+    return random_original_state(shapes_of("resnet50"), "resnet50")
 
 
 def _load(tmp_path, state, name="bad.pth", prefix=""):
-    return depth.load_adelai_checkpoint(depth.build_leres("resnet50"), save(tmp_path / name, state, prefix))
+    return depth.load_adelai_checkpoint(uninitialised("resnet50"), save(tmp_path / name, state, prefix))
 
 
 def test_missing_key_raises(tmp_path, res50_state):
@@ -244,7 +269,7 @@ def test_wrong_shape_and_unreadable_file_raise(tmp_path, res50_state):
         _load(tmp_path, state)
     (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match=r"junk\.pth"):
-        depth.load_adelai_checkpoint(depth.build_leres("resnet50"), tmp_path / "junk.pth")
+        depth.load_adelai_checkpoint(uninitialised("resnet50"), tmp_path / "junk.pth")
 
 
 def test_missing_batch_counters_tolerated(tmp_path, res50_state):

@@ -42,23 +42,23 @@ def same_cell_files(a: Path, b: Path, ignore: tuple = ()) -> list[str]:
 
 
 def test_warm_and_cold_kernels_give_the_same_files(smoke_study, tmp_path):
-    """Two cells of the smoke study's grid (run in warm kernels by the session's `monolib study smoke`) run again
-    with a kernel per cell (`--cold-kernels`) into another runs folder that holds the same dataset, models and
-    graphs, through a study file that is the smoke study at one of its thresholds and two scenarios (s1 and s2 at
-    2 m): every cell's files are the same bytes (cell.json but for its wall-clock timings, the study file's path and the mark
-    of a cell copied from a smaller threshold)."""
+    """A cell of the smoke study's grid (run in a warm kernel by the session's `monolib study smoke`) run again in
+    a kernel of its own (`--cold-kernels`) into another runs folder that holds the same dataset, models and graphs,
+    through a study file that is the smoke study at one threshold and scenario (s2 at 2 m: predicted semantics):
+    the cell's files are the same bytes (cell.json but for its wall-clock timings, the study file's path and the
+    mark of a cell copied from a smaller threshold)."""
     runs = tmp_path / "runs"
     shutil.copytree(paths.study_dir("smoke"), runs / "smoke",
                     ignore=lambda d, names: [n for n in names if Path(d) == paths.study_dir("smoke")
                                              and n in ("cells", "notebooks", "figures")])
     subset = tmp_path / "smoke_subset.yaml"
-    subset.write_text("name: smoke\nextends: smoke\nthresholds: [2]\nscenarios: {s3: null, s4: null}\n")
+    subset.write_text("name: smoke\nextends: smoke\nthresholds: [2]\nscenarios: {s1: null, s3: null, s4: null}\n")
     env = {**os.environ, "MPLBACKEND": "agg", "MONOLIB_RUNS": str(runs), "MONOLIB_FIGURES": str(tmp_path / "fig")}
     out = subprocess.run([sys.executable, "-m", "monolib.cli", "study", str(subset), "--cold-kernels"], env=env,
                          capture_output=True, text=True, timeout=1800)
     assert out.returncode == 0, out.stdout[-2000:] + out.stderr[-2000:]
     cold = sorted((runs / "smoke" / "cells").glob("*/*/cell.json"))
-    assert len(cold) == 2
+    assert len(cold) == 1
     for c in cold:
         w = paths.study_dir("smoke") / c.parent.relative_to(runs / "smoke")
         assert w.is_dir(), w
