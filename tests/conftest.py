@@ -1,4 +1,4 @@
-"""Shared pytest fixtures."""
+"""Shared pytest fixtures, and how `make test` shares the tests between its processes (`group_of`)."""
 import functools
 import os
 import subprocess
@@ -6,6 +6,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from monolib import paths
 
 
 @pytest.fixture(scope="session")
@@ -29,13 +31,11 @@ def smoke_study():
     return out
 
 
-
 # `make test` runs pytest on two processes (pytest-xdist, `-n 2`), a file at a time per process. The files that write
 # into the checkout's runs/ folder (the smoke study, its figures, the notebooks that read and draw them) run on one
 # process, one after another in file order as without xdist: their group is "runs". The files that only read the
 # smoke study's cells and inputs (a Dask cluster's cells and warm kernels compared with them, into folders of their
 # own) form a second group, and every other file works in a temporary folder of its own.
-ROOT = Path(__file__).resolve().parent.parent
 WRITES_RUNS = ("smoke_study", "paths.study_dir", "paths.figures_dir", "paths.cell_dir", "monolib.cli", "paths.NOTEBOOKS",
                "papermill")
 READS_SMOKE_CELLS = ("tests/test_cluster.py", "tests/test_kernels.py")
@@ -45,7 +45,7 @@ def group_of(path: str) -> str:
     """The xdist work unit of a test file (a path relative to the checkout, as in a node id)."""
     if path in READS_SMOKE_CELLS:
         return "smoke cells"
-    if path.startswith("notebooks/") or any(word in _text(ROOT / path) for word in WRITES_RUNS):
+    if path.startswith("notebooks/") or any(word in _text(paths.ROOT / path) for word in WRITES_RUNS):
         return "runs"
     return path
 
