@@ -11,7 +11,7 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install readme study ablations colour test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
+.PHONY: install readme study ablations direction colour test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
 
 install: $(STAMP)
 
@@ -40,6 +40,11 @@ readme: install
 # beyond the paper on the quick study's data (run `make study` first): encoder ablation, ours, depth scale
 ablations: install
 	$(VENV)/bin/monolib study ablations
+
+# why the direction of the edges decides (run `make study` first): the paper's encoder against its 2 x 2 of direction
+# and head at every threshold on scenarios 1 and 3, and along other node orders (params/direction.yaml)
+direction: install
+	$(VENV)/bin/monolib study direction
 
 # the node colour space (HDR against tonemapped) for gcn and ours in scenarios 1 and 3 (run `make study` first)
 colour: install

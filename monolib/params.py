@@ -152,8 +152,15 @@ class GCNSpec:
                                              # to 0 over `epochs`, per epoch: the last epochs move the model least)
     # encoder choices (the defaults are the paper's; `variants:` in a study file change them per method)
     conv: str = "gcn"                        # gcn | gine, gatv2, transformer (read the edge attributes)
-    edges: str = "both"                      # both directions, or "upper" (i < j only, as the published code)
-    linear: bool = True                      # Linear(hidden -> out) after the convs; False: last conv maps to out
+    edges: str = "upper"                     # the published code's: each pair once, i -> j for i < j in the node
+                                             # order, so that a node hears only the nodes before it (GCNConv passes
+                                             # messages source -> target) | "both" (undirected: both directions)
+    node_order: str = "label"                # the order `edges: upper` directs the edges by: the published files'
+                                             # (ascending NYU40 id) | "reversed" | "shuffled" (a fixed random order
+                                             # per graph) | "brightness" (darkest first) | "distance" (nearest to
+                                             # the camera first; needs node positions)
+    linear: bool = False                     # the published code's 5th GCNConv maps straight to `out`; True: a
+                                             # Linear(hidden -> out) after the convs
     label: str = "raw"                       # NYU40 id as a raw number | "embedding" (learned, 16-d) | "onehot"
     colour: str = "raw"                      # raw | "standardised" (training-set mean and std)
     edge_weight: str = "none"                # none | "inverse" (GCNConv weight 1 / (1 + length))
@@ -454,7 +461,8 @@ def _at_least(key: str, value, low, unit: str = "") -> None:
 # the allowed values of each choice key, written once (the checks below read them)
 SOURCES = ("synth", "hypersim")
 SPLITS = ("release", "volumes")
-GCN_CHOICES = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("both", "upper"),
+NODE_ORDERS = ("label", "reversed", "shuffled", "brightness", "distance")  # `GCNSpec.node_order`
+GCN_CHOICES = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("upper", "both"), "node_order": NODE_ORDERS,
                "label": ("raw", "embedding", "onehot"), "colour": ("raw", "standardised"),
                "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax", "attention"),
                "mining": ("random", "batch_hard", "family", "batch_hard_family"), "select": SELECT,
@@ -652,6 +660,11 @@ def _check_encoder(study: Study, where: str, g: GCNSpec) -> None:
     if g.conv == "transformer" and g.hidden % TRANSFORMER_HEADS:
         _bad(f"{where}.hidden", f"conv: transformer needs hidden divisible by its {TRANSFORMER_HEADS} heads, "
                                 f"got {g.hidden}")
+    if g.node_order != "label" and g.edges != "upper":
+        _bad(f"{where}.node_order", f"orders the edges of edges: upper; with edges: {g.edges} every pair is read both "
+                                    f"ways and the order does nothing (expected node_order: label)")
+    if study.graphs_root and g.node_order == "distance":
+        _bad(f"{where}.node_order", "published graphs hold no node positions: distance cannot order their nodes")
     if study.graphs_root and g.node_layout:
         _bad(f"{where}.node_layout", "published graphs hold no node positions: only edge lengths can be read")
     if study.graphs_root and g.edge_layout:

@@ -7,7 +7,7 @@ import torch
 
 from monolib.graphs.build import at_threshold, complete_graph
 from monolib.params import GCNSpec
-from monolib.retrieval.gcn import GraphEncoder, draw_triplets, embed, train
+from monolib.retrieval.gcn import GraphEncoder, draw_triplets, embed, encoder_graph, train
 
 
 def toy_graphs(n_settings=4, per=6, seed=0):
@@ -53,7 +53,9 @@ def test_training_lowers_the_loss_and_is_deterministic():
 
 
 CHOICES = [
-    {"edges": "upper", "linear": False},
+    {"edges": "both"},
+    {"linear": True},
+    {"node_order": "shuffled"},
     {"label": "embedding", "colour": "standardised"},
     {"label": "onehot"},
     {"edge_weight": "inverse"},
@@ -65,9 +67,8 @@ CHOICES = [
 
 
 def graphs_at(threshold, spec):
-    """The toy graphs at a threshold, with edges as `spec.edges` says (as a cell builds them)."""
-    return [at_threshold(complete_graph(g.x, g.pos, g.setting, g.frame), threshold, spec.edges == "both")
-            for g in toy_graphs()]
+    """The toy graphs at a threshold, with edges as `spec.edges` and `spec.node_order` say (as a cell builds them)."""
+    return [encoder_graph(complete_graph(g.x, g.pos, g.setting, g.frame), threshold, spec, None) for g in toy_graphs()]
 
 
 _DEFAULT = {}
@@ -86,8 +87,8 @@ def trained_default(threshold):
 @pytest.mark.parametrize("threshold", [1.5, 0.0])
 def test_every_encoder_variant_trains_and_embeds(choice, threshold):
     """... at a threshold, and at 0 (no edges: the encoder sees the nodes only); and each variant's embeddings differ
-    from the paper encoder's trained with the same seed on the same graphs, except the edge weight's at threshold 0
-    (an option that acts through the edges alone changes nothing without edges)."""
+    from the paper encoder's trained with the same seed on the same graphs, except at threshold 0 those of the
+    options that act through the edges alone (their weight, direction or order change nothing without edges)."""
     import dataclasses
 
     spec = dataclasses.replace(GCNSpec(epochs=2, batch_size=8, patience=5), **choice)
@@ -100,7 +101,7 @@ def test_every_encoder_variant_trains_and_embeds(choice, threshold):
     assert z.shape == (len(graphs) + 1, result.model.out_channels) and torch.isfinite(z).all()
     assert all(np.isfinite(h["train_loss"]) for h in result.history)
     default = trained_default(threshold)
-    if choice == {"edge_weight": "inverse"} and threshold == 0:
+    if threshold == 0 and set(choice) <= {"edge_weight", "edges", "node_order"}:
         torch.testing.assert_close(z[:-1], default)
     else:
         assert z[:-1].shape != default.shape or not torch.allclose(z[:-1], default)
@@ -148,9 +149,9 @@ def test_label_and_colour_options_change_the_node_features():
 
 def test_structure_options_change_the_layers_and_the_output():
     graphs = graphs_at(1.5, GCNSpec())  # not complete graphs: on those every node ends the same, and mean = max
-    base, nolin = twin_encoders(linear=False)
-    assert shapes(base)["lin.weight"] == (64, 128) and shapes(base)["convs.4.lin.weight"] == (128, 128)
-    assert not any(k.startswith("lin.") for k in shapes(nolin)) and shapes(nolin)["convs.4.lin.weight"] == (64, 128)
+    base, head = twin_encoders(linear=True)  # the paper's code: the 5th conv maps to 64; the ablation adds a head
+    assert shapes(head)["lin.weight"] == (64, 128) and shapes(head)["convs.4.lin.weight"] == (128, 128)
+    assert not any(k.startswith("lin.") for k in shapes(base)) and shapes(base)["convs.4.lin.weight"] == (64, 128)
     base, meanmax = twin_encoders(pooling="meanmax")
     assert shapes(base) == shapes(meanmax) and meanmax.out_channels == 128
     z, zm = embed(base, graphs), embed(meanmax, graphs)
@@ -163,8 +164,7 @@ def test_structure_options_change_the_layers_and_the_output():
 
 
 def test_edge_options_change_what_the_encoder_reads_of_the_edges():
-    spec_upper = GCNSpec(edges="upper")
-    both, upper = graphs_at(1.5, GCNSpec()), graphs_at(1.5, spec_upper)
+    both, upper = graphs_at(1.5, GCNSpec(edges="both")), graphs_at(1.5, GCNSpec())
     assert sum(g.edge_index.shape[1] for g in upper) > 0
     assert [2 * g.edge_index.shape[1] for g in upper] == [g.edge_index.shape[1] for g in both]
     assert all((g.edge_index[0] < g.edge_index[1]).all() for g in upper)       # i < j only, as the published code
@@ -239,7 +239,7 @@ def test_the_sparse_adjacency_gives_what_gcnconv_computes_from_the_edge_list(edg
             if i < len(model.convs) - 1 or model.lin is not None:
                 h = h.relu()
         from torch_geometric.nn import global_max_pool
-        want = global_max_pool(model.lin(h), batch.batch)
+        want = global_max_pool(h if model.lin is None else model.lin(h), batch.batch)
     assert torch.allclose(got, want, atol=1e-5), (got - want).abs().max()
 
 

@@ -18,7 +18,8 @@ from monolib.graphs.build import (
 from monolib.params import GCNSpec, StudyError, load_study
 from monolib.retrieval import gcn
 
-SMALL = GCNSpec(hidden=16, layers=2, out=8, epochs=2, batch_size=16, patience=5)
+# the layout encoders keep `ours`'s undirected edges and linear head (params/quick.yaml)
+SMALL = GCNSpec(hidden=16, layers=2, out=8, epochs=2, batch_size=16, patience=5, edges="both", linear=True)
 
 
 def small(**choice) -> GCNSpec:

@@ -824,6 +824,22 @@ def test_an_ablation_of_a_method_on_both_protocols(two, monkeypatch):
     assert "Ablation of `gcn`, protocol `paper`" in md and "Ablation of `gcn`, protocol `siblings`" in md
 
 
+def test_edge_penalty_is_each_threshold_against_the_same_encoder_without_edges(two):
+    """edge_penalty.md/csv: per graph method and scenario with a cell without edges, each other threshold's recall@1
+    minus its own at 0 m, paired (the difference of the two means on the same queries); image methods have no row."""
+    written = report.write_report(two, n_boot=200)
+    table = pd.read_csv(written["edge_penalty_csv"])
+    assert set(table["method"]) == {"gcn"} and set(table["threshold"]) == {1.0, math.inf}
+    iv = pd.read_csv(written["intervals"])
+    means = iv[(iv.protocol == "paper") & (iv.method == "gcn") & (iv.metric == "recall") & (iv.k == 1)]
+    means = means.set_index("threshold")["mean"]
+    for r in table.itertuples():
+        assert r.no_edges == pytest.approx(means[0.0], abs=1e-3) and r.mean == pytest.approx(means[r.threshold], abs=1e-3)
+        assert r.diff == pytest.approx(means[r.threshold] - means[0.0], abs=1e-3) and r.ci_lo <= r.diff <= r.ci_hi
+    md = written["edge_penalty_md"].read_text()
+    assert "What the edges cost" in md and "| `gcn` |" in md and "Δ at ∞ m" in md
+
+
 def test_the_colour_table_sets_the_papers_number_beside_each_gcn_threshold():
     """colour.md: per scenario and threshold both colour spaces, their paired difference and, on the `gcn` rows,
     the paper's Table 1 number (monolib/resources/paper_tables.csv) where it has one."""

@@ -46,6 +46,31 @@ def test_smoke_study_writes_every_table_and_figure(smoke_study):
     assert "done: tables and figures in" in smoke_study.stdout
 
 
+def test_the_direction_report_reads_the_trained_encoders_of_the_smoke_study(smoke_study):
+    """direction.md/csv for a study whose variants of gcn change the edges' direction: the gcn rows from the smoke
+    study's own cells (trained encoders re-loaded, test graphs embedded again); a variant without cells has no row."""
+    import dataclasses
+
+    from monolib.params import Variant
+    from monolib.report import direction
+
+    s = load_study("smoke")
+    study = dataclasses.replace(s, variants={"gcn_reversed": Variant(gcn={"node_order": "reversed"},
+                                                                     ablation_of="gcn", description="reversed")})
+    assert direction.methods_of(s) == [] and direction.methods_of(study) == ["gcn", "gcn_reversed"]
+    iv = pd.read_csv(paths.figures_dir("smoke") / "intervals.csv")
+    table = direction.direction_table(study, iv)
+    with_edges = [t for t in s.thresholds if t > 0]
+    assert set(table["method"]) == {"gcn"} and len(table) == len(s.scenarios) * len(with_edges)
+    assert table["first_share"].between(0, 1).all() and table["uniform_share"].between(0, 0.5).all()
+    assert (table["seeds"] == len(s.seeds)).all() and (table["first_label"] >= 1).all()
+    recall = iv[(iv.metric == "recall") & (iv.k == 1) & (iv.protocol == "paper") & (iv.method == "gcn")]
+    one = table[(table.scenario == "s1") & (table.threshold == 1.0)].iloc[0]
+    assert one["recall"] == pytest.approx(recall[(recall.scenario == "s1") & (recall.threshold == 1.0)]["mean"].iloc[0])
+    md = direction.direction_markdown(table, {"s1": "GT"})
+    assert "Why the direction decides" in md and "s1: GT" in md and "| `gcn` | 1 |" in md
+
+
 # The smoke study's means, written by tests/refresh_smoke_expected.py. Training on a CPU with other vector units
 # (AVX2 / AVX-512, Intel / AMD: other MKL and oneDNN kernels) moves a smoke mean by a query or two, so the notebooks'
 # checked cells print no such number; the bands hold three queries of 24 (12.5 points) and 0.05 of a perception

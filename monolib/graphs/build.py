@@ -1,8 +1,10 @@
 """Back-projection and scene-graph construction (the paper's section 2, "Scene Graph Construction").
 
 A frame becomes one node per NYU40 label present: position = per-axis median of the label's 3D points (camera
-frame, metres), features = [NYU40 id, median R, G, B] (colour in 0..1). Two nodes closer than the threshold are
-joined in both directions, with the length as edge attribute. Everything here is vectorised over pixels.
+frame, metres), features = [NYU40 id, median R, G, B] (colour in 0..1), in ascending NYU40 id as the published
+files hold them. Two nodes closer than the threshold are joined, with the length as edge attribute: once, i -> j for
+i < j, as the original code joins them (`at_threshold`; `directed_by` points them along another node order), or in
+both directions. Everything here is vectorised over pixels.
 
 Two back-projections (`PROJECTIONS`, the study key `graphs.projection`):
 
@@ -19,6 +21,7 @@ Two back-projections (`PROJECTIONS`, the study key `graphs.projection`):
 """
 from __future__ import annotations
 
+import hashlib
 import math
 from typing import Optional
 
@@ -188,7 +191,8 @@ def pair_mask(pair_len: torch.Tensor, threshold: float) -> torch.Tensor:
 
 
 def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Data:
-    """The scene graph of `threshold`: edges for pairs closer than it (inf: all), in both directions by default.
+    """The scene graph of `threshold`: edges for pairs closer than it (inf: all), in both directions by default, or
+    once each, i -> j for i < j, as the original code held them (`both_directions=False`).
 
     `edge_attr` (E, 1) holds the lengths. Works for graphs built here and for published graphs alike.
     """
@@ -200,6 +204,48 @@ def at_threshold(g: Data, threshold: float, both_directions: bool = True) -> Dat
                num_nodes=g.num_nodes)
     if getattr(g, "pos", None) is not None:
         out.pos = g.pos
+    return out
+
+
+def node_rank(g: Data, order: str) -> torch.Tensor:
+    """(N,) each node's place in `order` (`monolib.params.NODE_ORDERS`): ``label`` the nodes as stored (ascending
+    NYU40 id, as the published files hold them), ``reversed``, ``shuffled`` (a random order fixed per graph, drawn
+    from its setting and frame, the same for every seed and epoch: a property of the input, not of the training),
+    ``brightness`` (the sum of the node's R, G, B, darkest first) or ``distance`` (from the camera, nearest first;
+    needs `pos`). Ties keep the stored order."""
+    n = g.num_nodes
+    if order == "label":
+        return torch.arange(n)
+    if order == "reversed":
+        return torch.arange(n - 1, -1, -1)
+    if order == "shuffled":
+        seed = int.from_bytes(hashlib.sha256(f"node_order|{g.setting}|{g.frame}".encode()).digest()[:8], "little")
+        return torch.as_tensor(np.random.default_rng(seed).permutation(n), dtype=torch.long)
+    if order == "brightness":
+        key = g.x[:, 1:NODE_FEATURES].double().sum(dim=1)
+    elif order == "distance":
+        if getattr(g, "pos", None) is None:
+            raise ValueError(f"graph of frame {g.frame!r} ({g.setting}) has no node positions (pos): node_order: "
+                             "distance needs them; published graphs hold only edge lengths")
+        key = g.pos.double().norm(dim=1)
+    else:
+        raise ValueError(f"node_order: expected one of label, reversed, shuffled, brightness, distance, got {order!r}")
+    rank = torch.empty(n, dtype=torch.long)
+    rank[torch.argsort(key, stable=True)] = torch.arange(n)
+    return rank
+
+
+def directed_by(g: Data, order: str) -> Data:
+    """`g` (a graph of `at_threshold` with each pair once) with every edge pointing from the node earlier in `order`
+    to the later one (`node_rank`): GCNConv passes messages source -> target, so that a node hears only the nodes
+    before it. Reordering the nodes this way is the same input to a GCN with max pooling as renumbering them."""
+    if order == "label" or g.edge_index.shape[1] == 0:
+        return g
+    rank = node_rank(g, order)
+    src, dst = g.edge_index
+    swap = rank[src] > rank[dst]
+    out = g.clone()
+    out.edge_index = torch.stack([torch.where(swap, dst, src), torch.where(swap, src, dst)])
     return out
 
 
@@ -248,7 +294,8 @@ def edge_layout_features(pos: torch.Tensor, edge_index: torch.Tensor, length: to
 
 
 def build_scene_graph(rgb, depth, semantic, camera: Camera, threshold: float, projection: str = "exact") -> Data:
-    """The paper's scene graph of one frame: `x` = [NYU40 id, median R, G, B], `pos` = per-axis median (metres,
-    camera frame of `projection`), `edge_index` both directions for every pair closer than `threshold` (inf joins
-    all pairs), `edge_attr` = lengths. A frame with no labelled pixel gives an empty graph (0 nodes)."""
+    """The scene graph of one frame: `x` = [NYU40 id, median R, G, B], `pos` = per-axis median (metres, camera
+    frame of `projection`), `edge_index` both directions for every pair closer than `threshold` (inf joins all
+    pairs), `edge_attr` = lengths (the encoders read it through `monolib.retrieval.gcn.encoder_graph`, which holds
+    each pair once for the paper's encoder). A frame with no labelled pixel gives an empty graph (0 nodes)."""
     return at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, camera, projection)), threshold)

@@ -9,8 +9,8 @@ The reader is strict: anything else is one `PublishedGraphError` naming the file
 That includes pairs with i > j, self-loops (i == i), a pair listed in both directions and a pair listed twice. The
 release stores every unordered pair of distinct nodes exactly once, as i < j; a file that does not was written by
 some other tool, and guessing its convention (directed edges? one length per direction, and which one wins?) would
-silently change the graphs the encoder sees (`graph.at_threshold` makes each pair both directions, so a pair listed
-twice would become a doubled edge), so the reader refuses it instead of normalising it.
+silently change the graphs the encoder sees (the paper's encoder reads each pair once, i -> j, and the undirected
+encoders both ways, so a pair listed twice would become a doubled edge), so the reader refuses it instead of normalising it.
 """
 from __future__ import annotations
 

@@ -324,6 +324,32 @@ def threshold_tests(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap) -> pd.D
     return out
 
 
+EDGE_PENALTY_COLUMNS = ["method", "scenario", "threshold", "protocol", "metric", "k", "no_edges", "mean", "diff",
+                        "ci_lo", "ci_hi", "significant", "n_seeds"]
+
+
+def edge_penalty(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, hidden: frozenset | set = frozenset(),
+                 k: int = 1, protocol: str = PAPER) -> pd.DataFrame:
+    """What the edges cost each encoder: per graph method and scenario with a cell without edges (threshold 0),
+    recall@k at every other threshold minus recall@k without edges, a paired bootstrap on the seeds, settings and
+    queries the two share (columns `EDGE_PENALTY_COLUMNS`; ``no_edges`` and ``mean``: the two means of
+    `intervals`). Scenarios in `hidden` are left out."""
+    rows = []
+    col = f"recall@{k}"
+    ivp = iv[(iv["metric"] == "recall") & (iv["k"] == k) & (iv.get("protocol", PAPER) == protocol)]
+    for (method, scenario), g in ivp.groupby(["method", "scenario"], sort=False):
+        means = g.set_index("threshold")["mean"]
+        if scenario in hidden or 0.0 not in means.index or len(means) < 2:
+            continue
+        base = rows_of(qv, method, scenario, 0.0, protocol)
+        for t in sorted(set(means.index) - {0.0}):
+            d = paired_difference(rows_of(qv, method, scenario, t, protocol), base, boot, [col])
+            for r in d.itertuples(index=False):
+                rows.append((method, scenario, float(t), protocol, r.metric, int(r.k), float(means[0.0]),
+                             float(means[t]), r.diff, r.ci_lo, r.ci_hi, bool(r.significant), int(r.n_seeds)))
+    return pd.DataFrame(rows, columns=EDGE_PENALTY_COLUMNS)
+
+
 # ---- controlled comparisons: encoder ablation ------------------------------------------------------------------
 
 ABLATION_COLUMNS = ["method", "description", "scenario", "threshold", "protocol", "metric", "k", "mean", "ci_lo",

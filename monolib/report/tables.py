@@ -402,6 +402,33 @@ def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str
     return "\n".join(lines) + "\n"
 
 
+def edge_penalty_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
+                          n_boot: int = N_BOOT, title: str = "What the edges cost.") -> str:
+    """``edge_penalty.md`` of `monolib.report.statistics.edge_penalty`: a row per method and scenario, recall@k
+    without edges, then at each threshold the paired difference to it ``Δ [lo, hi]`` (* when significant)."""
+    labels = dict(scenario_labels or {})
+    thresholds = sorted(table["threshold"].unique())
+    k = int(table["k"].iloc[0]) if len(table) else 1
+    head = ["method", "data", f"recall@{k} without edges"] + [f"Δ at {threshold_label(t)} m" for t in thresholds]
+    lines = [f"**{title}** Recall@{k} on `paper` at each threshold minus recall@{k} of the same encoder without "
+             f"edges (threshold 0: the nodes alone), paired on the same seeds, settings and queries [95% paired "
+             f"bootstrap interval, {n_boot} resamples]; {STAR}: the interval excludes 0. Without edges the mean "
+             f"over seeds [its interval is in intervals.csv].", "",
+             "| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(head) - 2)) + "|"]
+    for (m, sc), g in table.groupby(["method", "scenario"], sort=False):
+        g = g.set_index("threshold")
+        line = [f"`{m}`", f"{sc}: {labels.get(sc, sc)}", f"{g['no_edges'].iloc[0]:.1f}"]
+        for t in thresholds:
+            if t not in g.index:
+                line.append("–")
+                continue
+            r = g.loc[t]
+            line.append(f"{signed(r['diff'])} [{signed(r['ci_lo'])}, {signed(r['ci_hi'])}]"
+                        + (STAR if r["significant"] else ""))
+        lines.append("| " + " | ".join(line) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def twin_rows(table: pd.DataFrame, axis: str, scenario_labels: Optional[Mapping[str, str]] = None,
               paper: Optional[Mapping[tuple, float]] = None) -> list[str]:
     """The per-scenario tables of `monolib.report.statistics.twin_table` along `axis`: per method and threshold,

@@ -24,7 +24,7 @@ import pandas as pd
 
 from monolib import io, params, paths
 from monolib.params import PAPER, SIBLINGS
-from monolib.report import claims, figures, folds, results, statistics, tables, training
+from monolib.report import claims, direction, figures, folds, results, statistics, tables, training
 from monolib.retrieval import grid
 
 log = logging.getLogger(__name__)
@@ -76,6 +76,10 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     - ``encoder_ablation.{md,csv}`` when the study has encoder variants (``paper`` protocol);
     - ``ablation_<method>.{md,csv}`` for each method that variants name in ``ablation_of`` (each of its parts
       switched, against it, on every protocol);
+    - ``edge_penalty.{md,csv}``: each graph encoder at every threshold against itself without edges, paired
+      (``paper`` protocol), when it has a cell without edges;
+    - ``direction.{md,csv}`` when variants of `gcn` change its edges' direction or node order
+      (`monolib.report.direction`);
     - ``recall_by_light.png`` + ``light.csv`` when the dataset records dim settings (``monolib_synth.json``;
       ``paper`` protocol);
     - ``recall_vs_depth_scale.png`` + ``depth_scale.csv`` when the study has scenarios with ``depth_scale != 1``
@@ -104,6 +108,8 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
         log.info("report of %s written to %s", study_name, r.out)
         return r.written
     _write_ablations(r)
+    _write_edge_penalty(r)
+    r.written.update(direction.write(r.study, r.out, r.iv, r.labels))
     _write_twins(r)
     _write_light(r)
     _write_depth_scale(r)
@@ -230,6 +236,15 @@ def _write_ablations(r: _Report) -> None:
             r.write(f"ablation_{base}_md", f"ablation_{base}.md", md)
             r.write(f"ablation_{base}_csv", f"ablation_{base}.csv",
                     tables.csv_text(pd.concat(tabs.values(), ignore_index=True)))
+
+
+def _write_edge_penalty(r: _Report) -> None:
+    """``edge_penalty.{md,csv}``: each graph encoder's recall@1 at every threshold against its own without edges
+    (paper protocol; scenarios of the tables and their twins alike)."""
+    table = statistics.edge_penalty(r.qv, r.iv, r.boot)
+    if len(table):
+        r.write("edge_penalty_md", "edge_penalty.md", tables.edge_penalty_markdown(table, r.labels, r.n_boot))
+        r.write("edge_penalty_csv", "edge_penalty.csv", tables.csv_text(table))
 
 
 def _write_twins(r: _Report) -> None:

@@ -1,6 +1,11 @@
 """The graph encoder (paper section 2, "Graph Neural Network"): GCN + triplet loss, trained per setting.
 
-Encoder: 5 GCNConv layers of 128 channels (each followed by ReLU), a linear layer to 64, global max pooling.
+Encoder, as the original code ran it (PyG's `models.GCN(in, 128, num_layers=5, out_channels=64)`, max over the
+nodes): 5 GCNConv layers, the first four of 128 channels each followed by ReLU, the fifth mapping straight to 64,
+global max pooling. Its graphs hold each pair once, i -> j for i < j in ascending NYU40 id, and GCNConv passes
+messages from source to target: a node hears only the nodes of lower label id, and the first node hears nobody.
+The paper's text describes a linear layer to 64 after the convolutions; its code has none. The undirected encoder
+(`edges: both`) and the linear head (`linear: true`) are ablations of it (params/ablations.yaml).
 Triplets (paper): every training graph is an anchor once per epoch; its positive is a random other graph of the
 same setting, its negative a random graph of another setting; drawn afresh each epoch from the seed.
 """
@@ -26,7 +31,8 @@ from torch_geometric.nn.conv.gcn_conv import gcn_norm
 from monolib.data.labels import NUM_CLASSES
 from monolib.device import device, seed_everything
 from monolib.data.protocols import family
-from monolib.graphs.build import EDGE_LAYOUT, NODE_FEATURES, NODE_LAYOUT, at_threshold, layout_graph
+from monolib.graphs.build import (EDGE_LAYOUT, NODE_FEATURES, NODE_LAYOUT, at_threshold, directed_by,
+                                  layout_graph, node_rank)
 from monolib.params import TRANSFORMER_HEADS, GCNSpec
 
 log = logging.getLogger(__name__)
@@ -108,10 +114,13 @@ def normalised_adjacency(edge_index: torch.Tensor, weight: Optional[torch.Tensor
 
 def encoder_graph(g: Data, threshold: float, spec: GCNSpec, projection: Optional[str]) -> Data:
     """The graph of a cached scene graph `g` (nodes and every pair) that the encoder of `spec` reads at
-    `threshold`: its edges (`at_threshold`, both directions unless `edges: upper`) and, with `node_layout` /
-    `edge_layout`, the layout features in the camera frame of `projection` (`layout_graph`)."""
-    return layout_graph(at_threshold(g, threshold, spec.edges == "both"), projection, spec.node_layout,
-                        spec.edge_layout)
+    `threshold`: its edges (`at_threshold`: each pair once, directed along `spec.node_order` by `directed_by`, or
+    both directions with `edges: both`) and, with `node_layout` / `edge_layout`, the layout features in the camera
+    frame of `projection` (`layout_graph`)."""
+    g = at_threshold(g, threshold, spec.edges == "both")
+    if spec.edges == "upper":
+        g = directed_by(g, spec.node_order)
+    return layout_graph(g, projection, spec.node_layout, spec.edge_layout)
 
 
 def reads_edge_attr(spec: GCNSpec) -> bool:
@@ -221,6 +230,18 @@ class GraphEncoder(nn.Module):
 
     def forward(self, batch: GraphBatch) -> torch.Tensor:
         """(num_graphs, out) embeddings of a `GraphBatch` or a `torch_geometric.data.Batch`."""
+        h, pairs = self.node_embeddings(batch)
+        # size= makes an empty graph (no node) a zero vector instead of a missing row
+        pooled = global_max_pool(h, batch.batch, size=batch.num_graphs)
+        if self.spec.pooling == "meanmax":
+            pooled = torch.cat([global_mean_pool(h, batch.batch, size=batch.num_graphs), pooled], dim=1)
+        elif self.spec.pooling == "attention":
+            pooled = torch.cat([self.attention(h, batch.batch, dim_size=batch.num_graphs), pooled], dim=1)
+        return pooled if pairs is None else torch.cat([pooled, pairs], dim=1)
+
+    def node_embeddings(self, batch: GraphBatch) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+        """((num_nodes, out) each node's embedding before the pooling, the pair readout's (num_graphs, 2 out) or
+        None): what `forward` pools, and what tells which node each pooled entry came from."""
         h = self.features(batch.x)
         edges = self.edge_features(batch)
         pairs = self.pair_readout(h, batch, edges) if self.spec.pair_readout else None
@@ -240,13 +261,7 @@ class GraphEncoder(nn.Module):
                 h = h.relu()
         if self.lin is not None:
             h = self.lin(h)
-        # size= makes an empty graph (no node) a zero vector instead of a missing row
-        pooled = global_max_pool(h, batch.batch, size=batch.num_graphs)
-        if self.spec.pooling == "meanmax":
-            pooled = torch.cat([global_mean_pool(h, batch.batch, size=batch.num_graphs), pooled], dim=1)
-        elif self.spec.pooling == "attention":
-            pooled = torch.cat([self.attention(h, batch.batch, dim_size=batch.num_graphs), pooled], dim=1)
-        return pooled if pairs is None else torch.cat([pooled, pairs], dim=1)
+        return h, pairs
 
     def pair_readout(self, h: torch.Tensor, batch: GraphBatch, edges: torch.Tensor) -> torch.Tensor:
         """(num_graphs, 2 out): mean and max over each graph's edges i -> j of MLP([h_i, h_j, edge features]), the
@@ -371,6 +386,31 @@ def embed(model: GraphEncoder, graphs: list[Data], batch_size: int = 256) -> tor
         for start in range(0, len(graphs), batch_size):
             out.append(model(pool.batch(np.arange(start, min(start + batch_size, len(graphs)))).to(dev)).cpu())
     return torch.cat(out) if out else torch.zeros((0, model.out_channels))
+
+
+def first_node_share(model: GraphEncoder, graphs: list[Data]) -> dict[str, float]:
+    """Where the max-pooled embedding of the graphs comes from: ``share`` the mean over graphs with at least two
+    nodes of the share of the `out` max-pooled entries taken from the graph's first node in the encoder's node
+    order (`monolib.graphs.build.node_rank`; the node that hears nobody when each edge points from the earlier node
+    to the later one), ``uniform`` that share if every node were as likely (the mean of 1 / nodes), ``graphs`` how
+    many graphs were counted, and ``first_label`` the NYU40 id most often first."""
+    model.eval()
+    graphs = [g for g in graphs if g.num_nodes >= 2]
+    if not graphs:
+        return {"share": float("nan"), "uniform": float("nan"), "graphs": 0, "first_label": -1}
+    pool = GraphPool(graphs)
+    dev = next(model.parameters()).device
+    with torch.inference_mode():
+        h = model.node_embeddings(pool.batch(np.arange(len(graphs))).to(dev))[0].cpu()
+    first = torch.stack([pool.node_start[i] + node_rank(g, model.spec.node_order).argmin()
+                         for i, g in enumerate(graphs)])
+    batch = torch.repeat_interleave(torch.arange(len(graphs)), pool.num_nodes)
+    top = h.new_full((len(graphs), h.shape[1]), float("-inf")).scatter_reduce(0, batch[:, None].expand_as(h), h,
+                                                                               "amax")
+    from_first = (h[first] >= top).to(torch.float64).mean(dim=1)  # ties count for the first node
+    labels = torch.stack([pool.x[i, 0] for i in first]).long()
+    return {"share": float(from_first.mean()), "uniform": float((1.0 / pool.num_nodes.double()).mean()),
+            "graphs": len(graphs), "first_label": int(torch.bincount(labels).argmax())}
 
 
 def leave_one_out_recall(emb: torch.Tensor, settings: np.ndarray) -> float:
