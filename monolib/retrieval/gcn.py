@@ -5,7 +5,7 @@ nodes): 5 GCNConv layers, the first four of 128 channels each followed by ReLU, 
 global max pooling. Its graphs hold each pair once, i -> j for i < j in ascending NYU40 id, and GCNConv passes
 messages from source to target: a node hears only the nodes of lower label id, and the first node hears nobody.
 The paper's text describes a linear layer to 64 after the convolutions; its code has none. The undirected encoder
-(`edges: both`) and the linear head (`linear: true`) are ablations of it (params/ablations.yaml).
+(`edges: both`) and the linear head (`linear: true`) are ablations of it (params/direction.yaml).
 Triplets (paper): every training graph is an anchor once per epoch; its positive is a random other graph of the
 same setting, its negative a random graph of another setting; drawn afresh each epoch from the seed.
 """
