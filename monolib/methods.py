@@ -7,7 +7,8 @@ from __future__ import annotations
 
 # name -> (kind, description)
 METHODS: dict[str, tuple[str, str]] = {
-    "gcn": ("graph", "the paper's encoder: 5 GCNConv(128) + Linear(64) + global max pool, triplet loss"),
+    "gcn": ("graph", "the paper's encoder as its code ran it: 5 GCNConv (128, the 5th to 64), each edge once from "
+                     "the lower NYU40 id to the higher, global max pool, triplet loss"),
     "color_hist": ("image", "global HSV colour histogram, no training (calibration baseline)"),
     "orb_bow": ("image", "ORB keypoints + bag of visual words (k-means on training images), tf-idf, L2-normalised"),
     "image_triplet": ("image", "small CNN on the RGB frame, trained from scratch with the GCN's triplet loss and budget"),
