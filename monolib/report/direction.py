@@ -19,6 +19,7 @@ import torch
 from monolib import io, paths
 from monolib.graphs import stage as scenegraphs
 from monolib.params import PAPER
+from monolib.report import statistics
 from monolib.report.tables import csv_text, fmt_ci, threshold_label
 from monolib.retrieval import gcn
 
@@ -73,8 +74,8 @@ def direction_table(study, iv: pd.DataFrame) -> pd.DataFrame:
                 if sc not in graphs:
                     graphs[sc] = scenegraphs.load(study, sc)["test"]
                 r = hit.iloc[0]
-                desc = study.variants[m].description if m in study.variants else "the paper's encoder"
-                rows.append({"method": m, "description": desc, "scenario": sc, "threshold": float(t),
+                rows.append({"method": m, "description": statistics.method_description(m, study), "scenario": sc,
+                             "threshold": float(t),
                              "recall": float(r["mean"]), "ci_lo": float(r["ci_lo"]), "ci_hi": float(r["ci_hi"]),
                              **first_node_row(study, m, sc, float(t), graphs[sc])})
     return pd.DataFrame(rows, columns=COLUMNS)

@@ -328,18 +328,18 @@ EDGE_PENALTY_COLUMNS = ["method", "scenario", "threshold", "protocol", "metric",
                         "ci_lo", "ci_hi", "significant", "n_seeds"]
 
 
-def edge_penalty(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, hidden: frozenset | set = frozenset(),
-                 k: int = 1, protocol: str = PAPER) -> pd.DataFrame:
+def edge_penalty(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, k: int = 1,
+                 protocol: str = PAPER) -> pd.DataFrame:
     """What the edges cost each encoder: per graph method and scenario with a cell without edges (threshold 0),
     recall@k at every other threshold minus recall@k without edges, a paired bootstrap on the seeds, settings and
     queries the two share (columns `EDGE_PENALTY_COLUMNS`; ``no_edges`` and ``mean``: the two means of
-    `intervals`). Scenarios in `hidden` are left out."""
+    `intervals`)."""
     rows = []
     col = f"recall@{k}"
     ivp = iv[(iv["metric"] == "recall") & (iv["k"] == k) & (iv.get("protocol", PAPER) == protocol)]
     for (method, scenario), g in ivp.groupby(["method", "scenario"], sort=False):
         means = g.set_index("threshold")["mean"]
-        if scenario in hidden or 0.0 not in means.index or len(means) < 2:
+        if 0.0 not in means.index or len(means) < 2:
             continue
         base = rows_of(qv, method, scenario, 0.0, protocol)
         for t in sorted(set(means.index) - {0.0}):
@@ -365,7 +365,8 @@ def _graph_methods(qv: pd.DataFrame, study=None, base: str = "gcn") -> list[str]
     return ([base] if base in present else []) + [m for m in present if m != base]
 
 
-def _description(method: str, study=None) -> str:
+def method_description(method: str, study=None) -> str:
+    """A method's description: its variant's in the study file, a built-in method's (`METHODS`), else its name."""
     if study is not None and method in getattr(study, "variants", {}):
         return study.variants[method].description or method
     if study is not None and method in METHODS:
@@ -421,7 +422,7 @@ def encoder_ablation(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, study=
                     continue
                 r = ivx.loc[key_]
                 d = diffs.loc[(metric, k)] if (metric, k) in diffs.index else None
-                rows.append((m, _description(m, study), sc, t, protocol, metric, k, float(r["mean"]), float(r["ci_lo"]),
+                rows.append((m, method_description(m, study), sc, t, protocol, metric, k, float(r["mean"]), float(r["ci_lo"]),
                              float(r["ci_hi"]), int(r["n_seeds"]),
                              *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
                                if d is not None else (np.nan, np.nan, np.nan, False))))
