@@ -11,7 +11,7 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install readme study ablations direction colour test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
+.PHONY: install readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
 
 install: $(STAMP)
 
@@ -45,6 +45,16 @@ ablations: install
 # and head at every threshold on scenarios 1 and 3, and along other node orders (params/direction.yaml)
 direction: install
 	$(VENV)/bin/monolib study direction
+
+# the paper's question on real graphs: the published graphs' development set (REAL_DATA: its archive, or a folder
+# with its train/) checked and unpacked into runs/published_graphs_dev/ (ignored), then cross-validated by volume at
+# quick's training size (params/real.yaml -> figures/real/) and at its full size (params/real_full.yaml ->
+# figures/real_full/). Resumable: run it again after a stop. docs/real-data.md
+REAL_DATA ?= $(CURDIR)/../shared/data/published_graphs_dev.tar.xz
+real: install
+	$(VENV)/bin/monolib unpack $(REAL_DATA) --out runs/published_graphs_dev
+	$(VENV)/bin/monolib study real
+	$(VENV)/bin/monolib study real_full
 
 # the node colour space (HDR against tonemapped) for gcn and ours in scenarios 1 and 3 (run `make study` first)
 colour: install

@@ -1,6 +1,6 @@
 """The `monolib` command: `monolib study STUDY`, `monolib synth STUDY --out DIR`, `monolib perception STUDY`,
-`monolib fidelity STUDY`, `monolib verify [STUDY]`, `monolib index STUDY --out DB`, `monolib localize IMAGE... --db DB`,
-`monolib bench`."""
+`monolib fidelity STUDY`, `monolib unpack ARCHIVE`, `monolib verify [STUDY]`, `monolib index STUDY --out DB`,
+`monolib localize IMAGE... --db DB`, `monolib bench`."""
 from __future__ import annotations
 
 import argparse
@@ -13,7 +13,7 @@ from pathlib import Path
 from monolib import paths
 from monolib.data import synth
 from monolib.io import CacheUnreadable, DataFileError
-from monolib.params import StudyError, load_study
+from monolib.params import StudyError, load_study, resolve_path
 
 # Each handler imports its stage itself ("# deferred: torch"), so that --help and a bad argument answer at once.
 
@@ -44,6 +44,11 @@ def _study_parsers(sub) -> None:
                                                           "shipped manifests")
     p = sub.add_parser("fidelity", help="compare a study's ground-truth scene graphs with real Hypersim (fidelity.md)")
     p.add_argument("study")
+    p = sub.add_parser("unpack", help="check the published graphs' development set (archive or folder) and put it "
+                                      "where params/real.yaml reads it")
+    p.add_argument("source", help="published_graphs_dev.tar.xz, or a folder with its train/ folder")
+    p.add_argument("--out", default="runs/published_graphs_dev",
+                   help="folder to write (relative to the project root; default runs/published_graphs_dev)")
     p = sub.add_parser("verify", help="compare a study's fresh figures with the committed ones: identical files, "
                                       "means moved against their intervals, claims that fail (exit 1 on a problem)")
     p.add_argument("study", nargs="?", default="quick", help="the study (default quick)")
@@ -154,6 +159,14 @@ def _fidelity(args) -> int:
     return 0
 
 
+def _unpack(args) -> int:
+    from monolib.graphs import devset  # deferred: torch
+
+    out = devset.unpack(args.source, resolve_path(args.out))
+    print(f"development set: {len(list((out / 'train').glob('*_graphs.pt')))} graph files in {out}")
+    return 0
+
+
 def _verify(args) -> int:
     from monolib.report import verify  # deferred: torch
 
@@ -207,7 +220,7 @@ def _bench(args) -> int:
 
 
 HANDLERS = {"study": _study, "synth": _synth, "perception": _perception, "zoo": _zoo, "fidelity": _fidelity,
-            "verify": _verify, "index": _index, "localize": _localize, "bench": _bench}
+            "unpack": _unpack, "verify": _verify, "index": _index, "localize": _localize, "bench": _bench}
 
 
 def _setup() -> None:

@@ -233,6 +233,9 @@ class Protocol:
     # the other folds its training.
     split: str = "release"
     folds: int = 5
+    # With ``split: volumes``: the data's own split run and reported beside the folds (true), or the folds only
+    # (false: a folder of training volumes alone, without the release's test/, such as the development set).
+    release_split: bool = True
 
 
 @dataclass
@@ -342,7 +345,10 @@ class Study:
     def folds(self) -> list[Optional[int]]:
         """The splits of the grid: None, the data's own (release) split, and with `protocol.split: volumes` the
         folds ``0 .. K-1`` beside it (the release split stays reported beside the folds)."""
-        return [None] + (list(range(self.protocol.folds)) if self.protocol.split == "volumes" else [])
+        pr = self.protocol
+        if pr.split != "volumes":
+            return [None]
+        return ([None] if pr.release_split else []) + list(range(pr.folds))
 
     def at_fold(self, fold: Optional[int]) -> "Study":
         """This study working on one fold (`fold`: an index of `folds()`; None: the release split). Raises
@@ -403,7 +409,9 @@ def _convert(value: Any, tp, where: str) -> Any:
             raise StudyError(f"{where}: expected a mapping, got {value!r}")
         return value
     if origin is dict:
-        if not isinstance(value, dict) or not value:
+        # no variants is a study's default (a study extending another may remove each of its variants by null);
+        # every other mapping of specs (the scenarios) needs at least one entry
+        if not isinstance(value, dict) or not value and where.rsplit(".", 1)[-1] != "variants":
             raise StudyError(f"{where}: expected a non-empty mapping, got {value!r}")
         return {str(k): _convert(v, args[1], f"{where}.{k}") for k, v in value.items()}
     if tp is bool:
@@ -507,6 +515,8 @@ def _check_protocol(study: Study) -> None:
         _bad("protocol.siblings", f"expected 0 (no siblings protocol) or a number of families, got {pr.siblings}")
     _one_of("protocol.split", pr.split, SPLITS)
     _at_least("protocol.folds", pr.folds, 2)
+    if not pr.release_split and pr.split != "volumes":
+        _bad("protocol.release_split", f"false (folds only) needs protocol.split: volumes, got {pr.split!r}")
     if ds.source == "synth" and not study.graphs_root:
         if pr.split != "release":
             _bad("protocol.split", "folds by volume need real volumes (dataset.source: hypersim or graphs_root); the "

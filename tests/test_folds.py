@@ -197,9 +197,10 @@ def test_the_report_over_folds(tmp_path, release, monkeypatch):
     assert not (vols[0] & vols[1] or vols[1] & vols[2] or vols[0] & vols[2])
     rvs = pd.read_csv(out / "real_vs_synth.csv")
     assert set(rvs["comparison"]) == {"gcn at 1 - gcn at 0 (no edges)", "ours at 0 (no edges) - gcn at 0 (no edges)"}
-    quick = fold_report.synth_differences(paths.figures_dir("quick"))
+    quick = fold_report.synth_differences(fold_report.synth_figures())
     got = rvs[(rvs["comparison"].str.startswith("gcn at 1")) & (rvs["metric"] == "recall@1")].iloc[0]
-    want = quick[(quick["ta"] == 1) & (quick["metric"] == "recall") & (quick["k"] == 1)].iloc[0]
+    want = quick[(quick["a"] == "gcn") & (quick["b"] == "gcn") & (quick["ta"] == 1) & (quick["metric"] == "recall")
+                 & (quick["k"] == 1)].iloc[0]
     assert got["synth"] == pytest.approx(want["diff"], abs=1e-4)
     assert "real_vs_synth" in written and (out / "folds.md").read_text().startswith("# The folds of")
 

@@ -30,7 +30,7 @@ import torch
 from torch_geometric.data import Data
 
 from monolib.data.hypersim import Camera
-from monolib.params import PROJECTIONS
+from monolib.params import NODE_ORDERS, PROJECTIONS
 
 NODE_FEATURES = 4  # NYU40 id, median R, G, B
 # The layout a graph encoder can read (`layout_graph`), in the camera frame (monocular: no world pose), axes made
@@ -229,7 +229,7 @@ def node_rank(g: Data, order: str) -> torch.Tensor:
                              "distance needs them; published graphs hold only edge lengths")
         key = g.pos.double().norm(dim=1)
     else:
-        raise ValueError(f"node_order: expected one of label, reversed, shuffled, brightness, distance, got {order!r}")
+        raise ValueError(f"node_order: expected one of {', '.join(NODE_ORDERS)}, got {order!r}")
     rank = torch.empty(n, dtype=torch.long)
     rank[torch.argsort(key, stable=True)] = torch.arange(n)
     return rank

@@ -137,10 +137,14 @@ def _evenly(items: list, n: int) -> list:
     return [items[i] for i in np.round(np.linspace(0, len(items) - 1, n)).astype(int)]
 
 
-def read_settings(root: Path) -> dict[str, dict[str, list[Data]]]:
-    """``{split: {setting: its graphs, by frame}}`` of the release's ``train/`` and ``test/`` folders."""
+def read_settings(root: Path, need_test: bool = True) -> dict[str, dict[str, list[Data]]]:
+    """``{split: {setting: its graphs, by frame}}`` of the release's ``train/`` and ``test/`` folders. Without
+    `need_test`, a missing ``test/`` is an empty split (a folder of training volumes alone, cross-validated by
+    volume with ``protocol.release_split: false``)."""
     by_setting: dict[str, dict[str, list[Data]]] = {"train": {}, "test": {}}
     for split in by_setting:
+        if split == "test" and not need_test and not (root / split).exists():
+            continue
         for g in read_folder(root / split):
             by_setting[split].setdefault(g.setting, []).append(g)
     return by_setting
@@ -152,7 +156,11 @@ def select(study: Study) -> dict[str, list[Data]]:
     by `dataset.train_settings`."""
     root = resolve_path(study.graphs_root)
     pr = study.protocol
-    by_split = read_settings(root)
+    if study.fold is None and not (root / "test").is_dir():
+        raise PublishedGraphError(f"{root / 'test'}: folder not found; the release's own split needs its test/ "
+                                  f"folder. A folder of training volumes alone is cross-validated by volume only: "
+                                  f"protocol.split: volumes, protocol.release_split: false")
+    by_split = read_settings(root, need_test=study.fold is None)
     graphs_of = {**by_split["train"], **by_split["test"]}
     train_names, test_all, label = folds.split_names(study, list(by_split["train"]), list(by_split["test"]))
     test_names = [s for s in test_all if len(graphs_of[s]) >= pr.frames]

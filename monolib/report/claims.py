@@ -162,7 +162,8 @@ def evaluate(claims: list[Claim], qv: pd.DataFrame, iv: pd.DataFrame, boots: dic
              source: str = str(CLAIMS_FILE)) -> pd.DataFrame:
     """One row per claim (columns `COLUMNS`): both means with the tables' intervals, the paired difference a - b
     with its interval, and whether the relation holds. `qv`: per-query values of every protocol
-    (`results.query_table`); `iv`: their intervals; `boots`: each protocol's `statistics.Bootstrap`."""
+    (`results.query_table`); `iv`: their intervals; `boots`: each protocol's `statistics.Bootstrap` (a
+    `statistics.FoldBootstrap` for a study over folds: `qv` then has a ``fold`` column)."""
     rows = []
     for c in claims:
         where = f"{source}: claim {c.id}"
@@ -170,10 +171,11 @@ def evaluate(claims: list[Claim], qv: pd.DataFrame, iv: pd.DataFrame, boots: dic
             raise ClaimsError(f"{where}: the study's results have no protocol {c.a.protocol!r}")
         a = _mean_of(iv, c.a, c.metric, f"{where}.a")
         b = _mean_of(iv, c.b, c.metric, f"{where}.b")
-        d = statistics.paired_difference(
-            statistics.rows_of(qv, c.a.method, c.a.scenario, c.a.threshold, c.a.protocol),
-            statistics.rows_of(qv, c.b.method, c.b.scenario, c.b.threshold, c.b.protocol), boots[c.a.protocol],
-            [c.metric])
+        boot = boots[c.a.protocol]  # over folds (a study cross-validated by volume alone): folds resampled too
+        pair = statistics.fold_paired_difference if isinstance(boot, statistics.FoldBootstrap) \
+            else statistics.paired_difference
+        d = pair(statistics.rows_of(qv, c.a.method, c.a.scenario, c.a.threshold, c.a.protocol),
+                 statistics.rows_of(qv, c.b.method, c.b.scenario, c.b.threshold, c.b.protocol), boot, [c.metric])
         if d.empty:
             raise ClaimsError(f"{where}: cells a and b share no query of protocol {c.a.protocol}")
         diff, lo, hi = float(d["diff"].iloc[0]), float(d["ci_lo"].iloc[0]), float(d["ci_hi"].iloc[0])

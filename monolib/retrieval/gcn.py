@@ -408,7 +408,7 @@ def first_node_share(model: GraphEncoder, graphs: list[Data]) -> dict[str, float
     top = h.new_full((len(graphs), h.shape[1]), float("-inf")).scatter_reduce(0, batch[:, None].expand_as(h), h,
                                                                                "amax")
     from_first = (h[first] >= top).to(torch.float64).mean(dim=1)  # ties count for the first node
-    labels = torch.stack([pool.x[i, 0] for i in first]).long()
+    labels = pool.x[first, 0].long()
     return {"share": float(from_first.mean()), "uniform": float((1.0 / pool.num_nodes.double()).mean()),
             "graphs": len(graphs), "first_label": int(torch.bincount(labels).argmax())}
 
