@@ -330,9 +330,9 @@ def training_size_markdown(study: Study, base: Study, iv: pd.DataFrame, base_iv:
     """``training_size.md``: recall@1 of each method and threshold at the base study's training size and at this
     study's, over the same folds."""
     def size(s: Study) -> str:
-        n = s.dataset.train_settings
-        return f"{'every' if n is None else n} training settings x {s.dataset.train_frames_per_setting} frames, " \
-               f"{len(s.seeds)} seeds"
+        n, seeds = s.dataset.train_settings, len(s.seeds)
+        return f"{'every training setting' if n is None else f'{n} training settings'} x " \
+               f"{s.dataset.train_frames_per_setting} frames, {seeds} seed{'s' if seeds > 1 else ''}"
 
     mine, theirs = _recall1(iv), _recall1(base_iv)
     lines = [f"# Training size ({base.name} against {study.name})", "",
@@ -426,6 +426,7 @@ def write(study: Study | None, out: Path, n_boot: int = statistics.N_BOOT) -> di
     io.write_text(out / "folds_intervals.csv", tables.csv_text(iv))
     if only_folds:
         io.write_text(out / "intervals.csv", tables.csv_text(iv))
+        written["intervals"] = out / "intervals.csv"
         release = pd.DataFrame(columns=statistics.INTERVAL_COLUMNS)
     else:
         release = pd.read_csv(out / "intervals.csv") if (out / "intervals.csv").is_file() else pd.DataFrame(
