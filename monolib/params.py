@@ -350,6 +350,11 @@ class Study:
             return [None]
         return ([None] if pr.release_split else []) + list(range(pr.folds))
 
+    @property
+    def folds_only(self) -> bool:
+        """Whether every split of the grid is a fold (`protocol.release_split: false`): no release split to report."""
+        return None not in self.folds()
+
     def at_fold(self, fold: Optional[int]) -> "Study":
         """This study working on one fold (`fold`: an index of `folds()`; None: the release split). Raises
         `StudyError` for a fold the study does not have."""
@@ -409,9 +414,7 @@ def _convert(value: Any, tp, where: str) -> Any:
             raise StudyError(f"{where}: expected a mapping, got {value!r}")
         return value
     if origin is dict:
-        # no variants is a study's default (a study extending another may remove each of its variants by null);
-        # every other mapping of specs (the scenarios) needs at least one entry
-        if not isinstance(value, dict) or not value and where.rsplit(".", 1)[-1] != "variants":
+        if not isinstance(value, dict):  # empty is a valid mapping here: the scenarios' own check wants one
             raise StudyError(f"{where}: expected a non-empty mapping, got {value!r}")
         return {str(k): _convert(v, args[1], f"{where}.{k}") for k, v in value.items()}
     if tp is bool:
@@ -624,6 +627,8 @@ def _check_perception(study: Study, check_files: bool) -> None:
 
 
 def _check_scenarios(study: Study) -> None:
+    if not study.scenarios:
+        _bad("scenarios", f"expected a non-empty mapping, got {study.scenarios!r}")
     _one_of("graphs.projection", study.graphs.projection, PROJECTIONS)
     _one_of("graphs.colour", study.graphs.colour, COLOURS)
     seg, depths = study.perception.segmentation.name, [d.name for d in study.perception.depth]

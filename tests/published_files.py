@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import yaml
 from torch_geometric.data import Data
 
 
@@ -46,6 +47,19 @@ def write_release(root: Path, layout: dict[str, dict[str, int]], cameras: int, f
                 torch.save(gs, path)
                 out.append(path)
     return out
+
+
+def study_file(tmp_path: Path, root: Path, **protocol) -> Path:
+    """A published-graphs study on `root` with a small protocol (2 test settings of 4 frames) and a tiny GCN."""
+    spec = {"name": "folds_test", "seed": 0, "graphs_root": str(root),
+            "dataset": {"source": "hypersim", "train_frames_per_setting": 4},
+            "scenarios": {"s1": {"depth": "gt", "semantic": "gt"}}, "thresholds": [1, 2], "seeds": [0],
+            "methods": ["gcn"], "gcn": {"epochs": 1, "hidden": 8, "out": 4, "layers": 1, "val_settings": 2,
+                                         "batch_size": 8},
+            "protocol": {"settings": 2, "frames": 4, "queries": 3, "positives": 1, **protocol}}
+    path = tmp_path / "folds_test.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
 
 
 def layout(volumes: list[int], settings: int, test_volumes: list[int]) -> dict[str, dict[str, int]]:

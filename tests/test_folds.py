@@ -1,6 +1,5 @@
 """Folds by volume and the subsample of training settings on published graph files written here in the release's
 format (the release is not in this repository), and the single released sample file read as it is."""
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -14,23 +13,10 @@ from monolib.graphs import published
 from monolib.graphs.published import PublishedGraphError
 from monolib.params import StudyError, load_study
 from monolib.retrieval.grid import grid
-from tests.published_files import layout, write_release
+from tests.published_files import layout, study_file, write_release
 
 SAMPLE = paths.ROOT.parent / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"
 VOLUMES = [1, 2, 3, 4, 5, 6]
-
-
-def study_file(tmp_path: Path, root: Path, **protocol) -> Path:
-    """A published-graphs study on `root` with a small protocol (2 test settings of 4 frames) and a tiny GCN."""
-    spec = {"name": "folds_test", "seed": 0, "graphs_root": str(root),
-            "dataset": {"source": "hypersim", "train_frames_per_setting": 4},
-            "scenarios": {"s1": {"depth": "gt", "semantic": "gt"}}, "thresholds": [1, 2], "seeds": [0],
-            "methods": ["gcn"], "gcn": {"epochs": 1, "hidden": 8, "out": 4, "layers": 1, "val_settings": 2,
-                                         "batch_size": 8},
-            "protocol": {"settings": 2, "frames": 4, "queries": 3, "positives": 1, **protocol}}
-    path = tmp_path / "folds_test.yaml"
-    path.write_text(yaml.safe_dump(spec))
-    return path
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from monolib.data.protocols import family
 from monolib.graphs import devset, published
 from monolib.graphs.published import PublishedGraphError
 from monolib.params import StudyError, load_study
-from tests.published_files import layout, write_release
+from tests.published_files import layout, study_file, write_release
 
 DEV_ARCHIVE = paths.ROOT.parent / "shared" / "data" / "published_graphs_dev.tar.xz"
 VOLUMES = [1, 2, 3, 4, 5, 6]
@@ -77,15 +77,14 @@ def test_unpack_takes_a_folder_too(tmp_path):
 
 
 def folds_only_study(tmp_path: Path, root: Path, **protocol) -> Path:
-    spec = {"name": "real_test", "seed": 0, "graphs_root": str(root),
-            "dataset": {"source": "hypersim", "train_frames_per_setting": 6},
-            "scenarios": {"s1": {"depth": "gt", "semantic": "gt"}}, "thresholds": [0, 1], "seeds": [0, 1],
-            "methods": ["gcn"], "gcn": {"epochs": 1, "hidden": 8, "out": 4, "layers": 1, "val_settings": 2,
-                                         "batch_size": 8},
-            "variants": {"gcn_undirected": {"ablation_of": "gcn", "gcn": {"edges": "both"}}},
-            "protocol": {"settings": 2, "frames": 10, "queries": 8, "positives": 2, "split": "volumes", "folds": 3,
-                         "release_split": False, **protocol}}
-    path = tmp_path / "real_test.yaml"
+    """`study_file` as a study of folds only (3 folds, 10 frames a test setting), thresholds 0 and 1, 2 seeds, the
+    undirected encoder beside `gcn`."""
+    path = study_file(tmp_path, root, **{"split": "volumes", "folds": 3, "release_split": False, "frames": 10,
+                                         "queries": 8, "positives": 2, **protocol})
+    spec = yaml.safe_load(path.read_text())
+    spec.update(name="real_test", thresholds=[0, 1], seeds=[0, 1],
+                variants={"gcn_undirected": {"ablation_of": "gcn", "gcn": {"edges": "both"}}})
+    spec["dataset"]["train_frames_per_setting"] = 6
     path.write_text(yaml.safe_dump(spec))
     return path
 

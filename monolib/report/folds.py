@@ -122,8 +122,9 @@ def fold_fidelity(study: Study) -> pd.DataFrame:
 
 
 def fidelity_markdown(t: pd.DataFrame, study: Study) -> str:
+    split = "train/ alone: no release split" if study.folds_only else "train/ and test/ together"
     lines = [f"# The folds of {study.name}", "",
-             f"The volumes of the published graphs ({'train/ alone: no release split' if None not in study.folds() else 'train/ and test/ together'}) dealt into {study.protocol.folds} folds by the study's "
+             f"The volumes of the published graphs ({split}) dealt into {study.protocol.folds} folds by the study's "
              f"seed ({study.seed}), whole volumes; each fold's test split is the paper protocol's "
              f"{study.protocol.settings} settings of its volumes. Fidelity statistics of each test split's graphs "
              f"(`monolib.graphs.fidelity`): nodes per graph (mean), label-set Jaccard of two frames of one setting "
@@ -252,6 +253,13 @@ def real_vs_synth_markdown(t: pd.DataFrame, study: Study, best: pd.DataFrame) ->
     return "\n".join(lines) + "\n"
 
 
+def paper_recall1() -> dict[float, float]:
+    """The paper's recall@1 of its GCN on scenario 1, by threshold (Table 1)."""
+    paper = results.paper_tables()
+    paper = paper[(paper["scenario"] == SCENARIO) & (paper["metric"] == "recall") & (paper["k"] == 1)]
+    return dict(zip(paper["threshold"], paper["value"]))
+
+
 def _recall1(iv: pd.DataFrame) -> pd.DataFrame:
     """The scenario-1 recall@1 rows of an intervals table (``paper`` protocol), thresholds as floats."""
     iv = iv.assign(threshold=iv["threshold"].map(results.threshold_value))
@@ -268,7 +276,7 @@ def synth_intervals(figure_dirs: list[Path]) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True).drop_duplicates(["method", "threshold"], keep="first")
 
 
-def best_thresholds(iv: pd.DataFrame, synth: pd.DataFrame, study: Study) -> pd.DataFrame:
+def best_thresholds(iv: pd.DataFrame, synth: pd.DataFrame) -> pd.DataFrame:
     """Per graph encoder with more than one threshold: the threshold of its best mean recall@1 on the real folds
     (`iv`) and on the mini-Hypersim (`synth`, over the same thresholds)."""
     real = _recall1(iv)
@@ -300,11 +308,11 @@ def edge_penalty_markdown(t: pd.DataFrame, study: Study) -> str:
     for r in own.itertuples():
         synth = "" if r.synth != r.synth else f"{tables.signed(r.synth)} {tables.fmt_ci(r.synth_lo, r.synth_hi)}"
         lines.append(f"| {r.a} | {tables.threshold_label(r.ta)} | {tables.signed(r.real)} "
-                     f"{tables.fmt_ci(r.real_lo, r.real_hi)} | {synth} | {r.agreement} | {sizes(r)} |")
+                     f"{tables.fmt_ci(r.real_lo, r.real_hi)} | {synth} | {r.agreement} | {interval_relation(r)} |")
     return "\n".join(lines) + "\n"
 
 
-def sizes(r) -> str:
+def interval_relation(r) -> str:
     """Whether the real and the mini-Hypersim intervals of one comparison overlap (``overlap``), or which leg's
     difference lies wholly below the other's (``real folds lower``, ``mini-Hypersim lower``); '' without a synthetic
     number."""
@@ -339,25 +347,23 @@ def training_size_markdown(study: Study, base: Study, iv: pd.DataFrame, base_iv:
              f"Recall@1 (%), scenario 1, mean over {study.protocol.folds} folds by volume [95 % bootstrap interval]: "
              f"`{base.name}` ({size(base)}) and `{study.name}` ({size(study)}); the paper's number beside.", "",
              f"| method | threshold (m) | {base.name} | {study.name} | paper |", "| --- | --- | --- | --- | --- |"]
-    paper = results.paper_tables()
+    paper = paper_recall1()
     for r in theirs.itertuples():
         m = mine[(mine["method"] == r.method) & (mine["threshold"] == r.threshold)]
-        pp = paper[(paper["scenario"] == SCENARIO) & (paper["threshold"] == r.threshold) & (paper["metric"] == "recall")
-                   & (paper["k"] == 1)] if r.method == "gcn" else paper.iloc[:0]
+        pp = paper.get(r.threshold) if r.method == "gcn" else None
         lines.append(f"| {r.method} | {tables.threshold_label(r.threshold)} | {_ci(r.mean, r.ci_lo, r.ci_hi)} | "
                      + ("" if m.empty else _ci(m["mean"].iloc[0], m["ci_lo"].iloc[0], m["ci_hi"].iloc[0]))
-                     + f" | {'' if pp.empty else format(pp['value'].iloc[0], '.1f')} |")
+                     + f" | {'' if pp is None else format(pp, '.1f')} |")
     return "\n".join(lines) + "\n"
 
 
-def reproduces_markdown(study: Study, iv: pd.DataFrame, rvs: pd.DataFrame, best: pd.DataFrame,
-                        synth: pd.DataFrame, sizes: list[tuple[str, pd.DataFrame]]) -> str:
+def reproduces_markdown(study: Study, rvs: pd.DataFrame, best: pd.DataFrame, synth: pd.DataFrame,
+                        sizes: list[tuple[str, pd.DataFrame]]) -> str:
     """``reproduces.md``: does the paper's threshold result hold? Per threshold the paper's recall@1 (scenario 1),
     the real folds at each training size of `sizes` (``(label, intervals)``, this study's among them), and the
     mini-Hypersim's `gcn`; then one generated sentence per comparison the paper makes (each threshold against no
     edges, and the best threshold) saying whether the two legs agree."""
-    paper = results.paper_tables()
-    paper = paper[(paper["scenario"] == SCENARIO) & (paper["metric"] == "recall") & (paper["k"] == 1)]
+    paper = paper_recall1()
     gcn = lambda t: t[t["method"] == "gcn"]  # noqa: E731
     real = [(label, gcn(_recall1(x))) for label, x in sizes]
     mini = gcn(synth)
@@ -369,12 +375,11 @@ def reproduces_markdown(study: Study, iv: pd.DataFrame, rvs: pd.DataFrame, best:
              + " | mini-Hypersim |", "| --- | ---: |" + " ---: |" * (len(real) + 1)]
     thresholds = sorted(set().union(*[set(x["threshold"]) for _, x in real]))
     for t in thresholds:
-        pp = paper[paper["threshold"] == t]
         cells = []
         for _, x in real + [("", mini)]:
             r = x[x["threshold"] == t]
             cells.append("" if r.empty else _ci(r["mean"].iloc[0], r["ci_lo"].iloc[0], r["ci_hi"].iloc[0]))
-        lines.append(f"| {tables.threshold_label(t)} | {'' if pp.empty else format(pp['value'].iloc[0], '.1f')} | "
+        lines.append(f"| {tables.threshold_label(t)} | {'' if t not in paper else format(paper[t], '.1f')} | "
                      + " | ".join(cells) + " |")
     lines += ["", f"What the paper's comparisons say on each leg (`{study.name}`; paired differences in points, "
                   f"`real_vs_synth.md`):", ""]
@@ -396,9 +401,7 @@ def reproduces_markdown(study: Study, iv: pd.DataFrame, rvs: pd.DataFrame, best:
                      f"({r.real_mean:.1f}){synth_txt}"
                      + ("" if r.synth_threshold != r.synth_threshold else
                         ("; the same on both legs." if same else "; the legs differ."))
-                     + (" The paper's best: " + tables.threshold_label(float(paper.loc[paper['value'].idxmax(),
-                                                                                       'threshold']))
-                        + "." if len(paper) else ""))
+                     + (f" The paper's best: {tables.threshold_label(max(paper, key=paper.get))}." if paper else ""))
     return "\n".join(lines) + "\n"
 
 
@@ -411,7 +414,7 @@ def write(study: Study | None, out: Path, n_boot: int = statistics.N_BOOT) -> di
     another study over folds, ``training_size.md``."""
     if study is None or study.protocol.split != "volumes":
         return {}
-    only_folds = None not in study.folds()
+    only_folds = study.folds_only
     written: dict[str, Path] = {}
     fid = fold_fidelity(study)
     io.write_text(out / "folds.csv", tables.csv_text(fid))
@@ -441,7 +444,7 @@ def write(study: Study | None, out: Path, n_boot: int = statistics.N_BOOT) -> di
     dirs = synth_figures()
     rvs = real_vs_synth(study, qv, fboot, dirs)
     synth = synth_intervals(dirs)
-    best = best_thresholds(iv, synth, study)
+    best = best_thresholds(iv, synth)
     io.write_text(out / "real_vs_synth.csv", tables.csv_text(rvs))
     io.write_text(out / "real_vs_synth.md", real_vs_synth_markdown(rvs, study, best))
     written.update(real_vs_synth=out / "real_vs_synth.md")
@@ -461,7 +464,7 @@ def write(study: Study | None, out: Path, n_boot: int = statistics.N_BOOT) -> di
         io.write_text(out / "training_size.md", training_size_markdown(study, base, iv, base_iv))
         written["training_size"] = out / "training_size.md"
         sizes.insert(0, (size_label(base), base_iv))
-    io.write_text(out / "reproduces.md", reproduces_markdown(study, iv, rvs, best, synth, sizes))
+    io.write_text(out / "reproduces.md", reproduces_markdown(study, rvs, best, synth, sizes))
     written["reproduces"] = out / "reproduces.md"
     return written
 

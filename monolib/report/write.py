@@ -99,7 +99,7 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
         study, study_name = study_name, study_name.name
     study_name = str(study_name)
     r = _Report(study_name, study if study is not None else _load_study(study_name), n_boot, method)
-    if r.study is not None and None not in r.study.folds():  # folds only: every table is over folds
+    if r.study is not None and r.study.folds_only:  # folds only: every table is over folds
         r.written.update(folds.write(r.study, r.out, n_boot))
         log.info("report of %s (folds only) written to %s", study_name, r.out)
         return r.written

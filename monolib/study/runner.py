@@ -504,7 +504,7 @@ def _run(study: Study, jobs: int | None, progress: bool, scheduler: str | None) 
     if study.name in paths.COMMITTED_FIGURES:
         if readme.update():
             print("README.md, docs/: result blocks updated from figures/", flush=True)
-    tables = "folds_table1_recall.md, folds_table2_precision.md, intervals.csv" if None not in study.folds() \
+    tables = "folds_table1_recall.md, folds_table2_precision.md, intervals.csv" if study.folds_only \
         else "table1_recall.md, table2_precision.md, results.csv"
     print(f"done: tables and figures in {out} ({tables}); executed notebooks in {study.dir / 'notebooks'}", flush=True)
     return times
