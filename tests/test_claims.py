@@ -161,7 +161,8 @@ def test_verify_against_the_runs_own_figures_passes(smoke_study, tmp_path):
     out = subprocess.run([sys.executable, "-m", "monolib.cli", "verify", "smoke", "--against", str(against)],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
-    assert "identical (" in out.stdout and "intervals.csv" in out.stdout.splitlines()[0]
+    assert out.stdout.startswith("dataset: identical to the committed one")  # the dataset first, then the files
+    assert "identical (" in out.stdout and "intervals.csv" in out.stdout.splitlines()[1]
     assert "PROBLEM" not in out.stdout and "verify: every claim holds" in out.stdout
 
 

@@ -179,3 +179,34 @@ def test_the_development_set_as_it_is(tmp_path):
     split = published.select(study.at_fold(0))  # one fold read whole: the protocol's settings, no volume shared
     assert len({g.setting for g in split["test"]}) == study.protocol.settings
     assert not {family(g.setting) for g in split["test"]} & {family(g.setting) for g in split["train"] + split["val"]}
+
+
+@pytest.mark.slow
+def test_model_selection_on_a_study_of_folds_holds_out_volumes_of_fold_0s_training_side(tmp_path, monkeypatch):
+    """`monolib bench --selection` on published graphs: the inner test is as many volumes as fold 0 tests, drawn
+    from its training side (never its test volumes); no image encoder is compared (no frames); each run's epochs
+    are recorded, and selection.md says what was held out."""
+    import math
+
+    from monolib.graphs import stage as scenegraphs
+    from monolib.retrieval import model_selection as ms
+
+    monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
+    root = tmp_path / "graphs"
+    write_release(root, {"train": layout(VOLUMES, settings=2, test_volumes=[])["train"]}, cameras=2, frames=6)
+    study = ms.split_study(load_study(folds_only_study(tmp_path, root)))
+    assert study.fold == 0
+    graphs = scenegraphs.load(study, ms.SCENARIO)
+    tested = {family(g.setting) for g in graphs["test"]}
+    families = ms.inner_families(study)
+    assert families == len(tested)
+    train, val, inner = ms.inner_split(graphs, families, study.seed)
+    assert len({family(g.setting) for g in inner}) == families and not {family(g.setting) for g in inner} & tested
+    assert not {g.setting for g in inner} & {g.setting for g in train + val}
+    training = ms.Training("folds test", 1e-3, "constant", 2, (ms.GRAPH, "image_triplet"))
+    df = ms.curves(study, (("gcn", 1.0), ("image_triplet", math.inf)), seeds=[0], workers=1, trainings=(training,),
+                   families=families)
+    assert set(df["method"]) == {"gcn"} and list(df["epoch"]) == [1, 2] and df["inner_recall@1"].between(0, 1).all()
+    md = ms.markdown(ms.rules_table(df, [ms.Rule("fixed 2", "last", 1, 2, 2, training.name)]), ms.best_possible(df), study.name,
+                     1.0, families=families, volumes=True)
+    assert f"{families} volumes of fold 0's training side held out as an inner test" in md

@@ -1,16 +1,18 @@
 """`monolib verify STUDY`: compare a study's freshly written figures with the committed ones.
 
 The committed figures are the files of the study's figures folder at git HEAD (`committed_figures`; or any folder
-given with ``--against``). `compare` reports three things:
+given with ``--against``). `compare` reports four things:
 
+- first, the dataset: its digest (``dataset_digest.json``, `monolib.data.digest`) against the committed one, naming
+  each setting and kind of file that differs (a problem: the rendered data should be the same bytes everywhere);
 - which files are byte for byte identical, and which differ (information: timings and figures differ freely);
 - every mean of ``intervals.csv`` (every number of the tables, with its 95 % interval) that moved: by how much,
   and whether it left its committed interval (a problem) or stayed inside it;
 - every claim of ``params/claims.yaml``: its relation tested on the fresh ``claims.csv``'s difference interval; a
   claim that fails is a problem, and one that held in the committed ``claims.csv`` is named as flipped.
 
-One line per problem; the run passes (exit 0) when every claim holds and every mean lies within its committed
-interval.
+One line per problem; the run passes (exit 0) when the dataset is the committed one, every claim holds and every
+mean lies within its committed interval.
 """
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from typing import Optional
 import pandas as pd
 
 from monolib import paths
+from monolib.data import digest
 from monolib.report import claims as claims_mod
 from monolib.report.results import SUMMARY_KEYS
 
@@ -36,6 +39,7 @@ class VerifyError(RuntimeError):
 
 @dataclass
 class Verdict:
+    dataset: list[str] = field(default_factory=list)
     identical: list[str] = field(default_factory=list)
     different: list[str] = field(default_factory=list)
     info: list[str] = field(default_factory=list)
@@ -46,8 +50,9 @@ class Verdict:
         return not self.problems
 
     def lines(self) -> list[str]:
-        """What `monolib verify` prints: the files, the information, then one line per problem and the verdict."""
-        out = [f"identical ({len(self.identical)}): {', '.join(self.identical) or '-'}",
+        """What `monolib verify` prints: the dataset, the files, the information, then one line per problem and the
+        verdict."""
+        out = self.dataset + [f"identical ({len(self.identical)}): {', '.join(self.identical) or '-'}",
                f"different ({len(self.different)}): {', '.join(self.different) or '-'}"]
         out += self.info + [f"PROBLEM: {p}" for p in self.problems]
         out.append("verify: every claim holds and every mean is within its committed interval" if self.ok else
@@ -86,6 +91,26 @@ def committed_figures(study_name: str, dest: Path, root: Path = paths.ROOT, rev:
             raise VerifyError(f"git show {rev}:{rel}/{name}: {blob.stderr.decode().strip()}")
         (dest / name).write_bytes(blob.stdout)
     return dest
+
+
+def _dataset(v: Verdict, fresh: Path, committed: Path) -> None:
+    """The dataset's digest (`monolib.data.digest`) against the committed one, before any mean: a dataset that
+    differs is a problem that names its settings and kinds of file (every number after it may move because of it)."""
+    old, new = committed / digest.FILE, fresh / digest.FILE
+    if not old.is_file():
+        return
+    if not new.is_file():
+        v.problems.append(f"{new}: missing (the committed figures have the dataset's digest; run the study)")
+        return
+    a, b = digest.read(old), digest.read(new)
+    lines = digest.differences(a, b)
+    if not lines:
+        v.dataset.append(f"dataset: identical to the committed one ({b['files']} files in {len(b['settings'])} "
+                         f"settings, sha256 {b['sha256'][:16]})")
+        return
+    v.dataset.append(f"dataset: differs from the committed one in {len(lines)} place(s) (sha256 {b['sha256'][:16]}, "
+                     f"committed {a['sha256'][:16]})")
+    v.problems += [f"dataset: {line}" for line in lines]
 
 
 def _files(v: Verdict, fresh: Path, committed: Path) -> None:
@@ -171,6 +196,7 @@ def compare(study_name: str, fresh: Path, committed: Path, claims_path: Path = c
         if not folder.is_dir():
             raise VerifyError(f"{folder}: no such folder of figures")
     v = Verdict()
+    _dataset(v, fresh, committed)
     _files(v, fresh, committed)
     _means(v, fresh, committed)
     _claims(v, study_name, fresh, committed, Path(claims_path))

@@ -2,7 +2,8 @@
 
 An inner split of a study's training settings: `INNER_FAMILIES` families (both settings of each, so that no sibling
 of an inner test setting is trained on) are held out as an inner test; the validation settings stay the study's;
-the rest train. Each encoder of `CONFIGS` (the graph encoders on the scene graphs of `SCENARIO`, the learned image
+the rest train. A study of folds by volume (published graphs) holds out as many volumes of fold 0's training side as
+that fold tests (`inner_families`), and its image encoders are not compared (there are no frames). Each encoder of `CONFIGS` (the graph encoders on the scene graphs of `SCENARIO`, the learned image
 encoders on the same settings' frames) trains all the epochs of each `TRAININGS` entry that trains it, once per
 seed, and after every epoch its history records what a rule can read (validation leave-one-out recall@1, mean
 average precision, loss) and the inner test's recall@1 under a protocol built like the paper's
@@ -255,7 +256,7 @@ def curves(study: Study, configs=CONFIGS, seeds: Optional[list[int]] = None, wor
     training (`study_training`)."""
     graphs = scenegraphs.load(study, SCENARIO)
     split = inner_split(graphs, families, study.seed)
-    known = set(study.graph_methods()) | set(TRAINED_IMAGE)
+    known = set(study.graph_methods()) | (set() if study.graphs_root else set(TRAINED_IMAGE))  # images: rendered only
     seeds = list(seeds or study.seeds)
     jobs = [(m, float(t), int(s), tr == study_training(study, m) and s in seeds[:TEST_CURVE_SEEDS], tr)
             for tr in trainings for m, t in configs if m in known and trains(tr, m) for s in seeds]
@@ -414,16 +415,20 @@ def _group_lines(table: pd.DataFrame, oracle: pd.DataFrame, grp: str, chosen: Op
 
 
 def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, cpu_seconds: float,
-             chosen: Optional[dict] = None, start: Optional[dict] = None) -> str:
+             chosen: Optional[dict] = None, start: Optional[dict] = None, families: int = INNER_FAMILIES,
+             volumes: bool = False) -> str:
     """selection.md: per group of encoders (`group`) every rule over its runs, then per configuration, the oracle
     beside; `chosen`: {group: the study's rule}; `start`: {group: inner recall@1 (%) before training}.
-    `cpu_seconds`: the runs' training, summed."""
+    `cpu_seconds`: the runs' training, summed; `families`: held out as the inner test (`volumes`: volumes of fold
+    0's training side, else families of two settings)."""
+    held = (f"{families} volumes of fold 0's training side held out as an inner test (every setting of each; the "
+            f"fold's test volumes are never read)" if volumes else
+            f"{families} training families held out as an inner test (both settings each)")
     trainings = "; ".join(f"{t.name} ({t.schedule}, {t.epochs} epochs: "
                           + ", ".join("graph encoders" if x == GRAPH else f"`{x}`" for x in t.trains) + ")"
                           for t in TRAININGS)
     lines = [f"**Model selection, measured on the training split of `{study_name}`** (`monolib bench --selection`, "
-             f"{cpu_seconds / 60:.0f} CPU-minutes of training, one thread a run). {INNER_FAMILIES} training families "
-             f"held out as an inner test (both settings each), queried as the paper's protocol queries its test "
+             f"{cpu_seconds / 60:.0f} CPU-minutes of training, one thread a run). {held}, queried as the paper's protocol queries its test "
              f"({INNER_POSITIVES} positives per setting, the other frames query, every frame of the other settings a "
              f"candidate); the study's validation settings as they are; each encoder trained all its epochs once per "
              f"seed and training ({trainings}), each rule replayed on the recorded epochs of its training (rules "
@@ -434,10 +439,27 @@ def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, cpu_sec
     return "\n".join(lines) + "\n"
 
 
+def inner_families(study: Study) -> int:
+    """How many families the inner test holds: `INNER_FAMILIES` pairs of the mini-Hypersim; with folds by volume
+    (`protocol.split: volumes`), as many volumes as fold 0's own test holds, so that the inner test is a fold's
+    size."""
+    if study.protocol.split != "volumes":
+        return INNER_FAMILIES
+    return len({family(g.setting) for g in scenegraphs.load(study.at_fold(0), SCENARIO)["test"]})
+
+
+def split_study(study: Study) -> Study:
+    """The study whose training split the comparison holds out from: itself, or with folds by volume its fold 0
+    (its training volumes, never the fold's test)."""
+    return study.at_fold(0) if study.protocol.split == "volumes" else study
+
+
 def write(study: Study, out: Path, seeds: Optional[list[int]] = None) -> dict[str, Path]:
-    """Run the comparison on `study`'s training split (the runs not yet in ``runs/<study>/selection/``) and write
-    its files into `out`."""
-    df = curves(study, seeds=seeds)
+    """Run the comparison on `study`'s training split (with folds by volume: fold 0's; the runs not yet in
+    ``runs/<study>/selection/``) and write its files into `out`."""
+    study = split_study(study)
+    families = inner_families(study)
+    df = curves(study, seeds=seeds, families=families)
     table = rules_table(df)
     out = Path(out)
     files = {"md": out / "selection.md", "rules": out / "selection_rules.csv", "curves": out / "selection_curves.csv"}
@@ -446,5 +468,6 @@ def write(study: Study, out: Path, seeds: Optional[list[int]] = None) -> dict[st
     start = {"imagenet_triplet": 100 * start_recall(study)} if "imagenet_triplet" in set(df["method"]) else {}
     write_text(files["curves"], df.drop(columns="run_s").to_csv(index=False))
     write_text(files["rules"], table.to_csv(index=False))
-    write_text(files["md"], markdown(table, best_possible(df), study.name, cpu, chosen, start))
+    write_text(files["md"], markdown(table, best_possible(df), study.name, cpu, chosen, start, families,
+                                     study.protocol.split == "volumes"))
     return files

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from monolib import locks, methods, paths
 from monolib.device import keep_freed_memory
-from monolib.data import stage as dataset
+from monolib.data import digest, stage as dataset
 from monolib.graphs import fidelity, stage as scenegraphs
 from monolib.io import write_json
 from monolib.params import Study, StudyError, load_study
@@ -428,6 +428,8 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
         ds = dataset.ensure_dataset(study, progress=progress)
         if figures and not study.extends:
             viz.save_dataset_mosaic(study, paths.figures_dir(study.name) / "frames.png", ds)
+        if figures and study.dataset.source == "synth":  # what verify compares first: did the data move?
+            write_json(paths.figures_dir(study.name) / digest.FILE, digest.digest(study.dataset_root))
     times["dataset_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
