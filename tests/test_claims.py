@@ -38,8 +38,9 @@ def claims_file(tmp_path, entries: list, study: str = "toy"):
     return path
 
 
-def claim(cid, a, b, relation, sentence="{a} against {b}"):
-    return {"id": cid, "a": a, "b": b, "relation": relation, "sentence": sentence}
+def claim(cid, a, b, relation, sentence="{a} against {b}", margin=None):
+    out = {"id": cid, "a": a, "b": b, "relation": relation, "sentence": sentence}
+    return out if margin is None else {**out, "margin": margin}
 
 
 A = {"method": "good", "scenario": "s1", "threshold": 0}
@@ -60,7 +61,11 @@ def toy():
 def test_relations_read_the_difference_interval():
     assert claims.holds("above", 0.5, 3.0) and not claims.holds("above", -0.5, 3.0)
     assert claims.holds("below", -3.0, -0.1) and not claims.holds("below", -3.0, 0.1)
-    assert claims.holds("level", -1.0, 2.0) and claims.holds("level", 0.0, 0.0) and not claims.holds("level", 0.1, 2)
+    assert claims.holds("level", -1.0, 2.0, 2.0) and claims.holds("level", 0.0, 0.0, 0.5)
+    assert not claims.holds("level", -1.0, 2.5, 2.0) and not claims.holds("level", -3.0, 0.5, 2.0)  # an end outside
+    assert claims.holds("level", 0.1, 2.0, 3.0)  # equivalent within the margin, whether or not the interval holds 0
+    with pytest.raises(ValueError, match="level: needs a margin"):
+        claims.holds("level", -1.0, 1.0)
     assert claims.holds("not_above", -1.0, 2.0) and claims.holds("not_above", -3.0, -1.0)
     assert not claims.holds("not_above", 0.1, 2.0)
     assert claims.holds("not_below", -1.0, 2.0) and claims.holds("not_below", 1.0, 3.0)
@@ -72,7 +77,7 @@ def test_relations_read_the_difference_interval():
 def test_claims_on_synthetic_rankings(toy, tmp_path):
     qv, iv, boots = toy
     path = claims_file(tmp_path, [claim("up", A, B, "above"), claim("down", B, A, "below"),
-                                  claim("same", A, A2, "level"), claim("wrong", A, B, "level")])
+                                  claim("same", A, A2, "level", margin=1), claim("wrong", A, B, "level", margin=5)])
     table = claims.evaluate(claims.load("toy", path), qv, iv, boots).set_index("id")
     assert table.loc["up", "holds"] and table.loc["down", "holds"] and table.loc["same", "holds"]
     assert not table.loc["wrong", "holds"]
@@ -82,9 +87,11 @@ def test_claims_on_synthetic_rankings(toy, tmp_path):
     assert table.loc["up", "a_mean"] == pytest.approx(good) and table.loc["up", "b_mean"] == pytest.approx(bad)
     assert table.loc["up", "diff"] == pytest.approx(good - bad) == -table.loc["down", "diff"]
     assert table.loc["up", "diff_lo"] > 0 and table.loc["down", "diff_hi"] < 0
+    assert table["stability"].between(0, 1).all()
+    assert table.loc["same", "stability"] == 1.0 and table.loc["up", "stability"] == 1.0  # no draw of seeds moves them
     md = claims.markdown(table.reset_index(), "toy")
     assert f"| up | {good:.1f} [" in md and "| wrong |" in md and "**FAILS**" in md
-    assert md.count("holds |") == 3
+    assert md.count("holds |") == 3 and "| level (±1) |" in md
 
 
 @pytest.mark.parametrize("entry, message", [
@@ -95,10 +102,37 @@ def test_claims_on_synthetic_rankings(toy, tmp_path):
     ({**claim("x", A, B, "above"), "metric": "map@1"}, r"\(x\).metric: expected recall@K or precision@K"),
     (claim("x", A, {**B, "protocol": "siblings"}, "above"), r"\(x\): a and b on protocols 'paper' and 'siblings'"),
     ({k: v for k, v in claim("x", A, B, "above").items() if k != "relation"}, r"toy\[0\].relation: missing"),
+    (claim("x", A, B, "level"), r"\(x\).margin: relation level needs the margin of equivalence in points"),
+    (claim("x", A, B, "level", margin="wide"), r"\(x\).margin: relation level needs .* got 'wide'"),
+    (claim("x", A, B, "above", margin=5), r"\(x\).margin: only relation level takes a margin \(relation: above\)"),
 ])
 def test_a_malformed_claim_is_one_error_naming_the_file_and_key(tmp_path, entry, message):
     with pytest.raises(claims.ClaimsError, match=message):
         claims.load("toy", claims_file(tmp_path, [entry]))
+
+
+def test_stability_is_the_share_of_seed_draws_that_keep_the_verdict(tmp_path):
+    """Three seeds in which `good` is far ahead of `meh` and one in which the two are the same: the verdict `above`
+    of the four holds, and in the draws of the seeds (with replacement) that hold mostly the fourth it fails."""
+    strong = [synthetic_queries({("good", "s1", 0): 0.9, ("meh", "s1", 0): 0.3}, n_seeds=1, n_settings=6,
+                                n_queries=10, seed=s).assign(seed=s) for s in range(3)]
+    null = synthetic_queries({("good", "s1", 0): 0.5, ("meh", "s1", 0): 0.5}, n_seeds=1, n_settings=6,
+                             n_queries=10, seed=3).assign(seed=3)
+    null.loc[null["method"] == "meh", "recall@1"] = null.loc[null["method"] == "good", "recall@1"].to_numpy()
+    qv = pd.concat([*strong, null], ignore_index=True)
+    boot = statistics.Bootstrap.for_queries(qv, 400)
+    path = claims_file(tmp_path, [claim("up", A, {**B, "method": "meh"}, "above")])
+    r = claims.evaluate(claims.load("toy", path), qv, statistics.intervals(qv, boot), {"paper": boot}).iloc[0]
+    iv = statistics.seed_resampled_intervals(statistics.rows_of(qv, "good", "s1", 0), statistics.rows_of(
+        qv, "meh", "s1", 0), boot, ["recall@1"])
+    assert iv.shape == (statistics.STABILITY_RESAMPLES, 2) and r["holds"]
+    draws = np.random.default_rng([statistics.BOOT_SEED, 2]).integers(0, 4, size=(statistics.STABILITY_RESAMPLES, 4))
+    mostly_null = (draws == 3).sum(axis=1) >= 3  # the draws in which the null seed counts three times or four
+    assert mostly_null.any() and not (iv[mostly_null, 0] > 0).any()
+    assert r["stability"] == pytest.approx(float(np.mean(iv[:, 0] > 0))) and r["stability"] <= 1 - mostly_null.mean()
+    one_seed = claims.evaluate(claims.load("toy", path), strong[0], statistics.intervals(strong[0], boot),
+                               {"paper": boot})
+    assert np.isnan(one_seed["stability"].iloc[0])  # one seed: nothing to resample
 
 
 def test_a_claim_on_cells_the_study_lacks_names_them(toy, tmp_path):
@@ -149,7 +183,9 @@ def test_smoke_claims_are_written_with_the_tables_numbers(smoke_study):
         row = iv[(iv.method == c.a.method) & (iv.scenario == c.a.scenario) & (iv.threshold == c.a.threshold)
                  & (iv.protocol == c.a.protocol) & (iv.metric == "recall") & (iv.k == 1)]
         assert r.a_mean == pytest.approx(float(row["mean"].iloc[0]), abs=1e-4)
-        assert r.holds == claims.holds(c.relation, r.diff_lo, r.diff_hi)
+        assert r.holds == claims.holds(c.relation, r.diff_lo, r.diff_hi, c.margin)
+        one_seed = len(load_study("smoke").seeds) == 1  # one seed: nothing to resample
+        assert np.isnan(r.stability) if one_seed else 0 <= r.stability <= 1
         assert r.diff_lo <= r.diff <= r.diff_hi
     md = (fig / "claims.md").read_text()
     assert all(f"| {c.id} |" in md for c in stated)

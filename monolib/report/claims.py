@@ -9,17 +9,23 @@
       b: {method: color_hist, scenario: rgb, threshold: .inf}   # protocol: paper when left out
       metric: recall@1                           # the default
       relation: level                            # above | below | level | not_above | not_below
+      margin: 15                                 # level only: the interval within +/- 15 points
       sentence: "`layout` on ground truth ({a}) is level with the colour histogram ({b})."
 
 Both cells of a claim belong to one protocol (the bootstrap pairs queries within a protocol, never across). The
 difference is mean(a) - mean(b) with the paired bootstrap's 95 % interval (`statistics.paired_difference`, the
 protocol's `statistics.Bootstrap`); the two means and their intervals are the tables' (``intervals.csv``).
 ``above`` holds when the difference's interval lies entirely above 0, ``below`` entirely below 0, ``level`` when
-it contains 0; ``not_above`` when it does not lie entirely above 0 (level or below), ``not_below`` when it does not
+it lies within +/- the claim's ``margin`` (points: equivalent within what the claim states, not merely "the
+interval contains 0"); ``not_above`` when it does not lie entirely above 0 (level or below), ``not_below`` when it does not
 lie entirely below 0 (level or above): what a comparison whose verdict moves between level and one side from one
 CPU to another (training is not bit for bit across CPUs) can state on every one. The sentence is a template
 without numbers: ``{a}`` and ``{b}`` become each cell's mean with its interval, ``{diff}`` the difference with its
 interval.
+
+Each claim's stability is the share of resamples of the seeds (`statistics.seed_resampled_intervals`) in which its
+verdict stays: a claim under `STABLE` hangs on the seeds drawn (and on the CPU, which trains each seed a little
+differently), so the study states it otherwise, gives it more seeds, or drops it.
 """
 from __future__ import annotations
 
@@ -39,11 +45,12 @@ from monolib.report import results, statistics
 CLAIMS_FILE = paths.PARAMS / "claims.yaml"
 RELATIONS = ("above", "below", "level", "not_above", "not_below")
 CELL_KEYS = ("method", "scenario", "threshold", "protocol")
-CLAIM_KEYS = ("id", "a", "b", "metric", "relation", "sentence")
+CLAIM_KEYS = ("id", "a", "b", "metric", "relation", "margin", "sentence")
+STABLE = 0.9  # a claim whose verdict stays in fewer of the seeds' resamples is not stated (`stability`)
 PLACEHOLDERS = ("a", "b", "diff")
 COLUMNS = ["id", "relation", "metric", "protocol", "a_method", "a_scenario", "a_threshold", "a_mean", "a_lo", "a_hi",
-           "b_method", "b_scenario", "b_threshold", "b_mean", "b_lo", "b_hi", "diff", "diff_lo", "diff_hi", "holds",
-           "sentence"]
+           "b_method", "b_scenario", "b_threshold", "b_mean", "b_lo", "b_hi", "diff", "diff_lo", "diff_hi", "margin",
+           "holds", "stability", "sentence"]
 
 
 class ClaimsError(ValueError):
@@ -66,6 +73,7 @@ class Claim:
     metric: str
     relation: str
     sentence: str
+    margin: Optional[float] = None   # points; `level` only: the interval must lie within +/- margin
 
 
 def _check_mapping(raw, where: str, keys: tuple, required: tuple) -> None:
@@ -98,6 +106,14 @@ def _claim(raw, where: str) -> Claim:
                           f"queries within one protocol")
     if raw["relation"] not in RELATIONS:
         raise ClaimsError(f"{where}.relation: expected one of {', '.join(RELATIONS)}, got {raw['relation']!r}")
+    margin = raw.get("margin")
+    if raw["relation"] == "level":
+        if isinstance(margin, bool) or not isinstance(margin, (int, float)) or not 0 < margin < 100:
+            raise ClaimsError(f"{where}.margin: relation level needs the margin of equivalence in points (a number "
+                              f"between 0 and 100: the interval of a - b must lie within +/- margin), got {margin!r}")
+        margin = float(margin)
+    elif margin is not None:
+        raise ClaimsError(f"{where}.margin: only relation level takes a margin (relation: {raw['relation']})")
     metric = str(raw.get("metric", "recall@1"))
     name, _, k = metric.partition("@")
     if name not in results.METRICS or not k.isdigit():
@@ -107,7 +123,7 @@ def _claim(raw, where: str) -> Claim:
     if fields - set(PLACEHOLDERS):
         raise ClaimsError(f"{where}.sentence: unknown placeholder {{{sorted(fields - set(PLACEHOLDERS))[0]}}} "
                           f"(expected {', '.join('{' + p + '}' for p in PLACEHOLDERS)})")
-    return Claim(str(raw["id"]), a, b, metric, str(raw["relation"]), sentence)
+    return Claim(str(raw["id"]), a, b, metric, str(raw["relation"]), sentence, margin)
 
 
 def load(study_name: str, path: Path = CLAIMS_FILE) -> list[Claim]:
@@ -132,14 +148,16 @@ def load(study_name: str, path: Path = CLAIMS_FILE) -> list[Claim]:
     return claims
 
 
-def holds(relation: str, lo: float, hi: float) -> bool:
-    """Whether a difference with 95 % interval [lo, hi] satisfies `relation`."""
+def holds(relation: str, lo: float, hi: float, margin: Optional[float] = None) -> bool:
+    """Whether a difference with 95 % interval [lo, hi] satisfies `relation` (`level`: within +/- `margin`)."""
     if relation == "above":
         return lo > 0
     if relation == "below":
         return hi < 0
     if relation == "level":
-        return lo <= 0 <= hi
+        if margin is None:
+            raise ValueError("relation level: needs a margin (points)")
+        return -margin <= lo and hi <= margin
     if relation == "not_above":
         return lo <= 0
     if relation == "not_below":
@@ -174,33 +192,59 @@ def evaluate(claims: list[Claim], qv: pd.DataFrame, iv: pd.DataFrame, boots: dic
         boot = boots[c.a.protocol]  # over folds (a study cross-validated by volume alone): folds resampled too
         pair = statistics.fold_paired_difference if isinstance(boot, statistics.FoldBootstrap) \
             else statistics.paired_difference
-        d = pair(statistics.rows_of(qv, c.a.method, c.a.scenario, c.a.threshold, c.a.protocol),
-                 statistics.rows_of(qv, c.b.method, c.b.scenario, c.b.threshold, c.b.protocol), boot, [c.metric])
+        ra = statistics.rows_of(qv, c.a.method, c.a.scenario, c.a.threshold, c.a.protocol)
+        rb = statistics.rows_of(qv, c.b.method, c.b.scenario, c.b.threshold, c.b.protocol)
+        d = pair(ra, rb, boot, [c.metric])
         if d.empty:
             raise ClaimsError(f"{where}: cells a and b share no query of protocol {c.a.protocol}")
         diff, lo, hi = float(d["diff"].iloc[0]), float(d["ci_lo"].iloc[0]), float(d["ci_hi"].iloc[0])
+        verdict = holds(c.relation, lo, hi, c.margin)
         rows.append((c.id, c.relation, c.metric, c.a.protocol, c.a.method, c.a.scenario, c.a.threshold, *a,
-                     c.b.method, c.b.scenario, c.b.threshold, *b, diff, lo, hi, holds(c.relation, lo, hi),
-                     c.sentence))
+                     c.b.method, c.b.scenario, c.b.threshold, *b, diff, lo, hi, c.margin, verdict,
+                     stability(c, ra, rb, boot, verdict), c.sentence))
     return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def stability(claim: Claim, a: pd.DataFrame, b: pd.DataFrame, boot, verdict: bool) -> float:
+    """The share of the seeds' resamples (`statistics.seed_resampled_intervals`) in which the claim's verdict is
+    `verdict`; NaN with one seed (nothing to resample)."""
+    iv = statistics.seed_resampled_intervals(a, b, boot, [claim.metric])
+    if not len(iv):
+        return math.nan
+    return float(sum(holds(claim.relation, lo, hi, claim.margin) == verdict for lo, hi in iv) / len(iv))
 
 
 def _num(mean: float, lo: float, hi: float) -> str:
     return f"{mean:.1f} [{lo:.1f}, {hi:.1f}]"
 
 
+def _relation(r) -> str:
+    return f"level (±{r.margin:g})" if r.relation == "level" else r.relation
+
+
+def _stability(r) -> str:
+    if math.isnan(r.stability):
+        return "one seed"
+    return f"{r.stability:.2f}" + (" (**unstable**)" if r.stability < STABLE else "")
+
+
 def markdown(table: pd.DataFrame, study_name: str, n_boot: int = statistics.N_BOOT) -> str:
-    """``claims.md``: each claim's sentence with its numbers, the difference and `holds` or `FAILS`."""
+    """``claims.md``: each claim's sentence with its numbers, the difference, the relation, `holds` or `FAILS`,
+    and its stability."""
     lines = [f"Claims of the `{study_name}` study (`params/claims.yaml`), recall or precision in %, mean [95 % "
              f"bootstrap interval, {n_boot} resamples]; difference: the paired bootstrap of a - b on the same "
-             f"seeds, settings and queries. `above` holds when its interval lies above 0, `below` below 0, `level` "
-             f"when it contains 0, `not_above` when it does not lie above 0, `not_below` when it does not lie below 0.",
-             "", "| claim | sentence | difference a - b | relation | verdict |", "|---|---|---|---|---|"]
+             f"seeds, settings and queries. `above` holds when its interval lies above 0, `below` below 0, `level "
+             f"(±m)` when it lies within ±m points (equivalent within the margin the claim states), `not_above` when "
+             f"it does not lie above 0, `not_below` when it does not lie below 0. Stability: the share of "
+             f"{statistics.STABILITY_RESAMPLES} resamples of the seeds (with replacement) in which the verdict stays "
+             f"the same; a claim under {STABLE:g} is marked unstable.",
+             "", "| claim | sentence | difference a - b | relation | verdict | stability |",
+             "|---|---|---|---|---|---:|"]
     for r in table.itertuples(index=False):
         sentence = r.sentence.format(a=_num(r.a_mean, r.a_lo, r.a_hi), b=_num(r.b_mean, r.b_lo, r.b_hi),
                                      diff=_num(r.diff, r.diff_lo, r.diff_hi))
-        lines.append(f"| {r.id} | {sentence} | {_num(r.diff, r.diff_lo, r.diff_hi)} | {r.relation} | "
-                     f"{'holds' if r.holds else '**FAILS**'} |")
+        lines.append(f"| {r.id} | {sentence} | {_num(r.diff, r.diff_lo, r.diff_hi)} | {_relation(r)} | "
+                     f"{'holds' if r.holds else '**FAILS**'} | {_stability(r)} |")
     return "\n".join(lines) + "\n"
 
 

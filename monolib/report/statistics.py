@@ -225,6 +225,34 @@ def fold_paired_difference(a: pd.DataFrame, b: pd.DataFrame, fboot: FoldBootstra
                                        "n_queries", "n_folds"])
 
 
+STABILITY_RESAMPLES = 100  # resamples of the seeds a claim's verdict is recomputed on (`seed_resampled_intervals`)
+
+
+def seed_resampled_intervals(a: pd.DataFrame, b: pd.DataFrame, boot, cols: list[str],
+                             n: int = STABILITY_RESAMPLES, seed: int = BOOT_SEED) -> np.ndarray:
+    """[n, 2]: the (lo, hi) 95 % interval of the paired difference mean(a) - mean(b) (`paired_difference`, or
+    `fold_paired_difference` when `boot` is a `FoldBootstrap`) recomputed on `n` resamples of the seeds with
+    replacement (numpy stream ``[seed, 2]``; a seed drawn twice counts twice; with folds the same seeds in every
+    fold, as the same seeds train every fold). What another draw of the study's seeds could have given: the share
+    of resamples in which a claim's verdict stays is its stability. Empty (0 rows) with fewer than two seeds.
+    `cols`: one metric column."""
+    folds = isinstance(boot, FoldBootstrap)
+    keys = (["fold"] if folds else []) + ["seed", "setting", "query"] + (
+        ["protocol"] if not folds and "protocol" in a.columns and "protocol" in b.columns else [])
+    d, cols = _paired(a, b, keys, cols)
+    n_seeds = int(d["seed"].nunique()) if len(d) else 0
+    if n_seeds < 2 or not cols:
+        return np.empty((0, 2))
+    draws = np.random.default_rng([seed, 2]).integers(0, n_seeds, size=(n, n_seeds))
+    cubes = boot.cubes(d, cols) if folds else [boot.cube(d, cols)]
+    out = np.empty((n, 2))
+    for i, idx in enumerate(draws):
+        drawn = [(v[idx], nq[idx]) for v, nq in cubes]
+        iv = boot.interval(drawn) if folds else boot.interval(*drawn[0])
+        out[i] = float(iv["ci_lo"][0]), float(iv["ci_hi"][0])
+    return out
+
+
 def rows_of(qv: pd.DataFrame, method: str, scenario: str, threshold: float,
             protocol: Optional[str] = None) -> pd.DataFrame:
     """The per-query rows of one (method, scenario, threshold) group (of one protocol when given)."""

@@ -178,7 +178,7 @@ def _claims(v: Verdict, study_name: str, fresh: Path, committed: Path, claims_pa
             v.problems.append(f"claim {c.id}: the fresh claims.csv compares other cells than {claims_path} "
                               f"(rerun the report)")
             continue
-        ok = claims_mod.holds(c.relation, float(r.diff_lo), float(r.diff_hi))
+        ok = claims_mod.holds(c.relation, float(r.diff_lo), float(r.diff_hi), c.margin)
         was = None if old is None or c.id not in old.index else bool(old.loc[c.id, "holds"])
         diff = f"difference {r['diff']:.1f} [{r.diff_lo:.1f}, {r.diff_hi:.1f}]"
         if not ok:
