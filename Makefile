@@ -11,7 +11,7 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-allocator bench-imagenet bench-selection clean-runs
+.PHONY: install readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-imagenet bench-selection clean-runs
 
 install: $(STAMP)
 
@@ -115,6 +115,12 @@ bench-render: install
 # query image end to end, recall@1, side by side
 bench-localizers: install
 	$(VENV)/bin/monolib bench --localizers --study quick --out figures/localizers.json
+
+# the localizer on photos (run `make study` first): recall@1 of each method it offers when quick's test frames go
+# through the photo path (JPEG quality 90, decoded, cropped, resized) against the same cells on the study's frames,
+# and one image's latency end to end on one torch thread, median and p90: figures/localize.md and .csv
+bench-localize: install
+	$(VENV)/bin/monolib bench --localize --study quick --out figures/localize.md
 
 # one imagenet_triplet cell of the quick study (run `make study` first) with glibc's malloc as it is and with the
 # project's (monolib.device.keep_freed_memory), in a new process each: seconds, system CPU, page faults, same files

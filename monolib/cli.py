@@ -57,19 +57,25 @@ def _study_parsers(sub) -> None:
 
 
 def _localize_parsers(sub) -> None:
-    p = sub.add_parser("index", help="store the embeddings of a study's test frames as a localization database")
+    p = sub.add_parser("index", help="a localization database: a study's test frames, or your own places (--places)")
     p.add_argument("study")
-    p.add_argument("--out", required=True, help="database folder")
+    p.add_argument("--out", required=True, help="database folder (indexing into it again embeds only new images)")
+    p.add_argument("--places", default=None, metavar="DIR", help="your own places: DIR/<place>/ holds .jpg, .jpeg "
+                   "or .png images of each place (other files and nested folders are skipped and listed); default: "
+                   "the study's test frames, one place per setting")
     p.add_argument("--method", default=None, help="method of the study whose best cell encodes: a graph "
                    "method (gcn or a variant; its best predicted-input cell; default: any) or an image method "
                    "(color_hist, orb_bow, image_triplet, imagenet_gem, imagenet_vlad, imagenet_triplet); another "
                    "name is an error")
-    p = sub.add_parser("localize", help="find the setting of RGB images (PNG/JPEG) in a database")
+    p = sub.add_parser("localize", help="find the place of RGB images (PNG/JPEG) in a database")
     p.add_argument("images", nargs="+")
     p.add_argument("--db", required=True)
-    p.add_argument("--k", type=int, default=None, help="nearest settings to list: 1 to the database's number of "
-                   "settings (outside that range: an error, not a clamp; default 5, or all of a smaller database)")
-    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--k", type=int, default=None, help="nearest places to list: 1 to the database's number of "
+                   "places (outside that range: an error, not a clamp; default 5, or all of a smaller database)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table (with each place's matched "
+                   "image)")
+    p.add_argument("--show", default=None, metavar="OUT.png", help="also draw what it saw: the image, its predicted "
+                   "semantics and depth, its scene graph, the nearest places' images (several images: OUT-1.png, ...)")
 
 
 def _bench_parser(sub) -> None:
@@ -82,6 +88,10 @@ def _bench_parser(sub) -> None:
                    "rendered by the generator of COMMIT and by this checkout's, side by side (minutes)")
     p.add_argument("--localizers", action="store_true", help="instead: a localizer of each method of the finished "
                    "--study, side by side: database bytes per frame, ms per query image, recall@1 (minutes)")
+    p.add_argument("--localize", action="store_true", help="instead: recall@1 of the localizer of each method of "
+                   "the finished --study on its test frames as JPEG photos, against the same cells on the study's "
+                   "frames, and one image's latency on one thread (--out, default figures/localize.md of the study, "
+                   "and a .csv beside it; minutes)")
     p.add_argument("--imagenet-choices", action="store_true", help="instead: imagenet_vlad of --study with and "
                    "without PCA whitening; recall@1 on both protocols (about a minute)")
     p.add_argument("--allocator", action="store_true", help="instead: one imagenet_triplet cell of the finished "
@@ -182,14 +192,15 @@ def _verify(args) -> int:
 def _index(args) -> int:
     from monolib import localize  # deferred: torch
 
-    print(f"database: {localize.build_index(load_study(args.study), args.out, args.method)}")
+    db = localize.build_index(load_study(args.study), args.out, args.method, args.places)
+    print(localize.describe_database(db))
     return 0
 
 
 def _localize(args) -> int:
     from monolib import localize  # deferred: torch
 
-    results = localize.localize(args.images, args.db, args.k)
+    results = localize.localize(args.images, args.db, args.k, args.show)
     print(json.dumps(results, indent=2) if args.json else localize.format_results(results))
     return 0
 
@@ -203,6 +214,8 @@ def _bench(args) -> int:
         bench.imagenet_choices(args.study, out=args.out)
     elif args.localizers:
         bench.localizer_costs(args.study, out=args.out)
+    elif args.localize:
+        bench.localize_photos(args.study, out=args.out or paths.figures_dir(load_study(args.study).name) / "localize.md")
     elif args.allocator:
         bench.allocator_side_by_side(args.study, out=args.out)
     elif args.selection:

@@ -128,8 +128,10 @@ def test_published_graphs_are_hdr_only(tmp_path):
 
 
 def test_the_localizer_refuses_a_graph_cell_of_hdr_colours(tmp_path, monkeypatch, capsys):
-    """A photo has no HDR radiance: `monolib index` of a study whose predicted-input scenarios take HDR colours
-    refuses with one error naming the key; a database that says it holds HDR colours is refused by `localize`."""
+    """A photo has no HDR radiance: the localizer never encodes with a cell of HDR node colours. Asked not to train
+    (`train=False`), picking a cell of a study whose predicted-input scenarios take HDR colours is one error naming
+    the key (`monolib index` trains the cell's tonemapped twin instead: tests/test_localize_places.py); a database
+    that says it holds HDR colours is refused by `localize`."""
     import json
 
     from monolib import localize
@@ -147,11 +149,13 @@ def test_the_localizer_refuses_a_graph_cell_of_hdr_colours(tmp_path, monkeypatch
                                                 "metrics": {"paper": {"recall@1": 0.5}}}))
     (cell / "model.pt").write_bytes(b"")
     with pytest.raises(localize.LocalizeError, match="graphs.colour: hdr: the encoders of this study's graph cells"):
-        localize.pick_cell(s)
+        localize.pick_cell(s, train=False)
     assert localize.pick_cell(load_study("smoke"))["scenario"] == "s3"  # smoke's s3 is tonemapped
     db = localize.write_database(tmp_path / "db", s, {**json.loads((cell / "cell.json").read_text()),
                                                       "folder": str(cell)}, GraphEncoder(s.gcn_spec("gcn")),
-                                 ["ai_001_001/cam_00/0000"], ["ai_001_001"], np.zeros((1, 64), np.float32))
+                                 ["ai_001_001/cam_00/0000"], ["ai_001_001"], np.zeros((1, 64), np.float32),
+                                 perception_files={"semantic": ("deeplab", cell / "model.pt"),
+                                                   "depth": ("depth_a", cell / "model.pt")})
     assert json.loads((db / "meta.json").read_text())["colour"] == "hdr"
     code = cli.main(["localize", str(tmp_path / "missing.png"), "--db", str(db)])
     err = capsys.readouterr().err

@@ -63,7 +63,7 @@ def test_the_notebooks_and_their_parameters_are_those_the_code_expects():
 
     from monolib.study.runner import CELL_NOTEBOOK, REPORT_NOTEBOOK, check_notebook_parameters
 
-    assert {p.stem for p in NOTEBOOKS} == {"ablation_cell", "report", "data", "segmentation", "depth"}
+    assert {p.stem for p in NOTEBOOKS} == {"ablation_cell", "report", "data", "segmentation", "depth", "localize"}
     check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})
     check_notebook_parameters(REPORT_NOTEBOOK, {"study"})
     for path in NOTEBOOKS:

@@ -224,4 +224,4 @@ def test_index_and_localize_with_an_image_method(smoke, tmp_path):
     np.testing.assert_allclose(emb, cell_emb, atol=1e-5)
     assert record["metrics"]["paper"]["recall@1"] == meta["cell_recall@1"]
     loc = localize.Localizer.open(db)
-    assert loc.query(sel.test[3].rgb, k=1)[0]["setting"] == sel.test[3].setting
+    assert loc.query(sel.test[3].rgb, k=1)[0]["place"] == sel.test[3].setting

@@ -290,7 +290,7 @@ def test_the_layout_encoder_localizes_a_frame_of_its_database(smoke_study, tmp_p
     same = tmp_path / "same.png"
     cv2.imwrite(str(same), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
     first, second = localize.localize([str(same)], db, k=3)[0]["matches"][:2]
-    assert first["frame"] == frame.key and first["setting"] == frame.setting, first
+    assert first["image"] == frame.key and first["place"] == frame.setting, first
     assert first["distance"] < 0.5 * second["distance"], (first, second)
 
 
@@ -318,8 +318,8 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path, capsys, m
     settings = {g.setting for g in selection.select_frames(s, ds, s.gcn.val_settings).test}
     for r in results:
         assert [m["rank"] for m in r["matches"]] == [1, 2, 3]
-        assert all(m["setting"] in settings for m in r["matches"])
-        assert len({m["setting"] for m in r["matches"]}) == 3
+        assert all(m["place"] in settings for m in r["matches"])
+        assert len({m["place"] for m in r["matches"]}) == 3
         assert all(a["distance"] <= b["distance"] for a, b in zip(r["matches"], r["matches"][1:]))
     # the RGB of a frame of the database, lossless at its own size: that frame comes first, far ahead of the next
     # (a localizer that ranked anything but the query's own scene graph first would fail here)
@@ -327,7 +327,7 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path, capsys, m
     cv2.imwrite(str(same), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
     assert cli.main(["localize", str(same), "--db", str(db), "--k", "3", "--json"]) == 0
     first, second = json.loads(capsys.readouterr().out)[0]["matches"][:2]
-    assert first["frame"] == frame.key and first["setting"] == frame.setting, first
+    assert first["image"] == frame.key and first["place"] == frame.setting, first
     assert first["distance"] < 0.5 * second["distance"], (first, second)
     # the printed table and one clear error each (a wrong path, an unreadable image, a database made by other
     # models)
@@ -340,9 +340,10 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path, capsys, m
         err = capsys.readouterr().err
         assert message in err, err[-2000:]
     meta = json.loads((db / "meta.json").read_text())
-    meta["models"]["depth"] = "depth_a-000000000000"
+    meta["files"]["depth.pt"] = "0" * 64
     (db / "meta.json").write_text(json.dumps(meta))
-    assert cli.main(["localize", str(png), "--db", str(db)]) == 2 and "made by models" in capsys.readouterr().err
+    assert cli.main(["localize", str(png), "--db", str(db)]) == 2
+    assert "made by other models than those it holds" in capsys.readouterr().err
 
 
 def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_path, capsys):
