@@ -11,7 +11,7 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-imagenet bench-selection clean-runs
+.PHONY: install readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-imagenet bench-selection bench-selection-real clean-runs
 
 install: $(STAMP)
 
@@ -131,6 +131,11 @@ bench-allocator: install
 # the rules compared on the training split of the quick study (run `make study` first; resumable): figures/selection.md
 bench-selection: install
 	$(VENV)/bin/monolib bench --selection --study quick
+
+# the same rules at the development set's full training size, on fold 0's training side (after make real has
+# unpacked it; resumable; about 75 minutes on 2 cores): figures/real_full/selection.md, the rule params/real_full.yaml trains by
+bench-selection-real: install
+	$(VENV)/bin/monolib bench --selection --study real_full
 
 # the measurement behind imagenet_vlad's whitening (none): recall@1 with and without it
 bench-imagenet: install

@@ -80,6 +80,14 @@ def test_runs_of_every_encoder_are_recorded_per_epoch_and_resumed(smoke_study):
     assert (again.loc[again["method"] == "imagenet_triplet", "inner_recall@1"] == 0.123).all()
     pd.testing.assert_frame_equal(again[again["method"] != "imagenet_triplet"].reset_index(drop=True),
                                   df[df["method"] != "imagenet_triplet"].reset_index(drop=True))
+    # a run asked for without its test curve reads the same training recorded with it (the curve changes nothing)
+    curved = ms.run_path(study, ("gcn", 1.0, 0, True, training), 1)
+    plain = ms.run_path(study, ("gcn", 1.0, 0, False, training), 1)
+    plain.rename(curved)
+    pd.read_csv(curved).assign(**{"test_recall@1": 0.5, "inner_recall@1": 0.321}).to_csv(curved, index=False)
+    reused = ms.curves(study, configs[:1], seeds=[0], workers=1, trainings=(training,), families=1)
+    assert (reused["inner_recall@1"] == 0.321).all() and "test_recall@1" not in reused.columns
+    assert not plain.exists()  # read, not trained again
 
 
 def test_the_criterion_chooses_the_lowest_spread_among_the_best_and_names_those_level_with_it():
@@ -106,3 +114,15 @@ def test_the_committed_comparison_chose_the_rule_each_encoder_of_quick_trains_by
     quick = load_study("quick", check_files=False)
     for method, grp in (("gcn", "graph"), ("image_triplet", "image_triplet"), ("imagenet_triplet", "imagenet_triplet")):
         assert study_rule(quick, method).name in recommend(table, grp), method
+
+
+def test_real_full_trains_by_the_rule_chosen_at_its_own_size():
+    """figures/real_full/selection.md's table (the rules at the development set's full training size, on fold 0's
+    training side): params/real_full.yaml trains every graph encoder by the rule the criterion chooses there."""
+    from monolib import paths
+
+    table = pd.read_csv(paths.figures_dir("real_full") / "selection_rules.csv")
+    real_full = load_study("real_full", check_files=False)
+    assert set(table["group"]) == {"graph"}  # no image encoder on published graphs
+    for method in real_full.graph_methods():
+        assert study_rule(real_full, method).name == recommend(table, "graph")[0], method

@@ -225,6 +225,10 @@ def _curve(job) -> list[dict]:
     path = run_path(study, job, _SHARED["families"], _SHARED["inputs"][method])
     if path.is_file():
         return pd.read_csv(path).to_dict("records")
+    if not with_test:  # the same training recorded with its test curve (the curve never changes the training)
+        with_curve = run_path(study, (*job[:3], True, training), _SHARED["families"], _SHARED["inputs"][method])
+        if with_curve.is_file():
+            return pd.read_csv(with_curve).drop(columns="test_recall@1", errors="ignore").to_dict("records")
     spec = run_spec(study, method, training)
     graph = group(method) == GRAPH
     inner_settings = [g.setting for g in (_SHARED["split"][2] if graph else _SHARED["frames"][2])]
@@ -424,9 +428,10 @@ def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, cpu_sec
     held = (f"{families} volumes of fold 0's training side held out as an inner test (every setting of each; the "
             f"fold's test volumes are never read)" if volumes else
             f"{families} training families held out as an inner test (both settings each)")
+    groups = set(table["group"])  # the trainings as far as they trained the encoders compared here
     trainings = "; ".join(f"{t.name} ({t.schedule}, {t.epochs} epochs: "
-                          + ", ".join("graph encoders" if x == GRAPH else f"`{x}`" for x in t.trains) + ")"
-                          for t in TRAININGS)
+                          + ", ".join("graph encoders" if x == GRAPH else f"`{x}`" for x in t.trains if x in groups)
+                          + ")" for t in TRAININGS if groups & set(t.trains))
     lines = [f"**Model selection, measured on the training split of `{study_name}`** (`monolib bench --selection`, "
              f"{cpu_seconds / 60:.0f} CPU-minutes of training, one thread a run). {held}, queried as the paper's protocol queries its test "
              f"({INNER_POSITIVES} positives per setting, the other frames query, every frame of the other settings a "
