@@ -95,8 +95,10 @@ zoo-pilot: install
 test: install
 	$(PY) -m pytest -n $(TEST_WORKERS) tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
 
-# the quick loop: the unit tests, without the tests marked slow (the smoke study, papermill, nbval, network training)
+# the quick loop: ruff (pyproject.toml's [tool.ruff]), then the unit tests, without the tests marked slow (the smoke
+# study, papermill, nbval, network training)
 test-fast: install
+	$(VENV)/bin/ruff check monolib tests notebooks
 	$(PY) -m pytest tests -m "not slow" -p no:cacheprovider -q --durations=10
 
 bench: install

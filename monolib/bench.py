@@ -62,7 +62,8 @@ def _time(fn, repeat: int) -> float:
 def graph_ms(width: int, height: int, repeat: int = 10, seed: int = 0) -> float:
     """Milliseconds to back-project a frame and build its nodes + edges (30 labels, blocky layout)."""
     rgb, depth, semantic, cam = _bench_frame(width, height, seed)
-    return 1000 * _time(lambda: at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, cam), "s", "f"), 2.0), repeat)
+    return 1000 * _time(lambda: at_threshold(complete_graph(*scene_nodes(rgb, depth, semantic, cam), "s", "f"), 2.0),
+                        repeat)
 
 
 def original_graph(rgb: np.ndarray, depth: np.ndarray, semantic: np.ndarray, camera: Camera, threshold: float):
@@ -143,7 +144,8 @@ def stage_ms(study_name: str = "quick", frames: int = 20) -> dict:
     n_db = study.protocol.settings * study.protocol.frames
     loc = Localizer(study, {"width": w, "height": h, "threshold": 2.0}, seg.eval(), dep.eval(),
                     gcn.GraphEncoder(study.gcn).eval(), torch.randn(n_db, study.gcn.out),
-                    pd.DataFrame({"frame": [str(i) for i in range(n_db)], "setting": [str(i % 16) for i in range(n_db)]}))
+                    pd.DataFrame({"frame": [str(i) for i in range(n_db)],
+                                  "setting": [str(i % 16) for i in range(n_db)]}))
     rng = np.random.default_rng(0)
     timings: dict = {}
     for _ in range(frames + 1):
@@ -185,7 +187,8 @@ def zoo_training(study_name: str = "zoo", steps: int = 3) -> dict:
 
         model.train()
         s = _time(step, steps)
-        per_epoch = int(np.ceil((ds.train_settings - spec.val_settings) * ds.train_frames_per_setting / spec.batch_size))
+        per_epoch = int(np.ceil((ds.train_settings - spec.val_settings) * ds.train_frames_per_setting
+                                / spec.batch_size))
         out[spec.name] = {"s_per_step": round(s, 3), "batch_size": spec.batch_size,
                           "resolution": f"{spec.train_width}x{spec.train_height}", "steps": per_epoch * spec.epochs,
                           "projected_hours": round(per_epoch * spec.epochs * s / 3600, 2)}
@@ -212,7 +215,8 @@ def write_frames(root, width: int, height: int, frames: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     images = Path(root) / "ai_000_001" / "images" / "scene_cam_00_final_hdf5"
     for i in range(frames):
-        io.write_h5(images / f"frame.{i:04d}.color.hdf5", rng.random((height, width, 3), np.float32).astype(np.float16), 1)
+        io.write_h5(images / f"frame.{i:04d}.color.hdf5",
+                    rng.random((height, width, 3), np.float32).astype(np.float16), 1)
     return HypersimDataset(root).frames("ai_000_001")
 
 
@@ -288,7 +292,8 @@ def run(width: int = 256, height: int = 192, study: str = "quick", out: str | No
         r = graph_speedup(w, h, record["graph_ms_per_frame"][f"{w}x{h}"])
         record["graph_vs_original"][f"{w}x{h}"] = r
         print(f"graph construction {w}x{h}, ours against the original's pixel double loop (same frame, this run): "
-              f"{r['ours_ms']:.1f} ms vs {r['original_ms']:.0f} ms, {r['speedup']:.0f}x faster, same graph: {r['same_graph']}")
+              f"{r['ours_ms']:.1f} ms vs {r['original_ms']:.0f} ms, {r['speedup']:.0f}x faster, "
+              f"same graph: {r['same_graph']}")
     p = perception_fps(study)
     record["perception_fps"] = p
     first = next(iter(p["networks"].values()))
@@ -417,8 +422,8 @@ def allocator_side_by_side(study_name: str = "quick", method: str = "imagenet_tr
 def allocator_table(record: dict) -> str:
     """The table of `allocator_side_by_side`'s record (docs/benchmarks.md)."""
     lines = [f"**The allocator** (`make bench-allocator`: one `{record['method']}` cell of `{record['study']}`, seed "
-             f"{record['seed']}, in a new process each, {record['torch_threads']} torch thread(s), {record['machine']}, "
-             f"{record['cpus']} cpus, {record['date']}). The same files, bit for bit "
+             f"{record['seed']}, in a new process each, {record['torch_threads']} torch thread(s), "
+             f"{record['machine']}, {record['cpus']} cpus, {record['date']}). The same files, bit for bit "
              f"({', '.join(record['files_compared'])}): **{'yes' if record['same_files'] else 'NO'}**.", "",
              "| MONOLIB_ALLOCATOR | seconds | user CPU s | system CPU s | system share | page faults | faults / s |",
              "|---|---:|---:|---:|---:|---:|---:|"]
@@ -503,7 +508,8 @@ def localizer_costs(study_name: str = "quick", queries: int = 40, out: str | Non
 
 def localizer_table(record: dict) -> str:
     """The table of `localizer_costs`' record (docs/benchmarks.md): one row per method."""
-    lines = [f"**What a localizer costs** (`make bench-localizers`, study `{record['study']}`: {record['queries']} query "
+    lines = [f"**What a localizer costs** (`make bench-localizers`, study `{record['study']}`: "
+             f"{record['queries']} query "
              f"images of its test split, {record['torch_threads']} torch thread(s), {record['device']}, "
              f"{record['machine']}, {record['cpus']} cpus, {record['date']}). Database: the method's embedding of each "
              f"of the study's test frames (float32), beside the encoder's state it needs (weights, a vocabulary). "
@@ -524,7 +530,8 @@ def localizer_table(record: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def imagenet_choices(study_name: str = "quick", seeds=(0, 1), dims=(None, 128, 256, 512), out: str | None = None) -> dict:
+def imagenet_choices(study_name: str = "quick", seeds=(0, 1), dims=(None, 128, 256, 512),
+                     out: str | None = None) -> dict:
     """The measurement behind `pretrained.VLAD_WHITEN`: `imagenet_vlad` without and with PCA whitening learnt on the
     training split, per seed, recall@1 of both protocols on the study's test split (`evaluate.evaluate_protocols`,
     the cells' evaluation). (How `imagenet_triplet` trains is chosen on the training split alone:
@@ -560,7 +567,8 @@ def imagenet_choices_table(record: dict) -> str:
              f"| imagenet_vlad | seed | dimensions | {head} |", "|---|---:|---:|" + "---:|" * len(protos)]
     for r in record["vlad_whitening"]:
         what = f"PCA-whitened to {r['whitened_dims']}" if r["whitened_dims"] else "as it is (chosen)"
-        lines.append(f"| {what} | {r['seed']} | {r['dimensions']:,} | " + " | ".join(f"{r[p]:.1f}" for p in protos) + " |")
+        lines.append(f"| {what} | {r['seed']} | {r['dimensions']:,} | "
+                     + " | ".join(f"{r[p]:.1f}" for p in protos) + " |")
     return "\n".join(lines) + "\n"
 
 # ---- localizing photos: recall@1 through the photo path, and one image's latency ---------------------------
@@ -802,8 +810,8 @@ def localize_page(record: dict) -> str:
         "Each image end to end, as `monolib localize` runs it: read (`Localizer.read`: the JPEG above decoded), "
         "then for a graph method segmentation, depth, graph (back-projection, nodes, edges) and encoder, for an "
         "image method its descriptor, then kNN (`Localizer.rank`: the nearest places over the database's rows). "
-        f"One torch thread; the first image untimed (a warm-up). Goal for a graph method: {record['latency_goal_ms']:.0f} ms "
-        "or less.", "",
+        "One torch thread; the first image untimed (a warm-up). Goal for a graph method: "
+        f"{record['latency_goal_ms']:.0f} ms or less.", "",
         "| method | database rows | images | median ms | p90 ms | goal | median ms per stage |",
         "|---|---:|---:|---:|---:|---|---|",
     ]

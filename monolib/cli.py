@@ -95,7 +95,8 @@ def _bench_parser(sub) -> None:
     p.add_argument("--imagenet-choices", action="store_true", help="instead: imagenet_vlad of --study with and "
                    "without PCA whitening; recall@1 on both protocols (about a minute)")
     p.add_argument("--allocator", action="store_true", help="instead: one imagenet_triplet cell of the finished "
-                   "--study with glibc's malloc as it is and with monolib's (MONOLIB_ALLOCATOR), side by side (minutes)")
+                   "--study with glibc's malloc as it is and with monolib's (MONOLIB_ALLOCATOR), side by side "
+                   "(minutes)")
     p.add_argument("--selection", action="store_true", help="instead: the model-selection rules of the trained "
                    "encoders compared on the training split of --study (figures/selection.md; minutes)")
     p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
@@ -215,7 +216,8 @@ def _bench(args) -> int:
     elif args.localizers:
         bench.localizer_costs(args.study, out=args.out)
     elif args.localize:
-        bench.localize_photos(args.study, out=args.out or paths.figures_dir(load_study(args.study).name) / "localize.md")
+        bench.localize_photos(args.study,
+                              out=args.out or paths.figures_dir(load_study(args.study).name) / "localize.md")
     elif args.allocator:
         bench.allocator_side_by_side(args.study, out=args.out)
     elif args.selection:

@@ -11,9 +11,11 @@ METHODS: dict[str, tuple[str, str]] = {
                      "the lower NYU40 id to the higher, global max pool, triplet loss"),
     "color_hist": ("image", "global HSV colour histogram, no training (calibration baseline)"),
     "orb_bow": ("image", "ORB keypoints + bag of visual words (k-means on training images), tf-idf, L2-normalised"),
-    "image_triplet": ("image", "small CNN on the RGB frame, trained from scratch with the GCN's triplet loss and budget"),
+    "image_triplet": ("image", "small CNN on the RGB frame, trained from scratch with the GCN's triplet loss and "
+                               "budget"),
     "imagenet_gem": ("image", "ImageNet EfficientNet-Lite2's last feature map, GeM-pooled (p = 3), L2: no training"),
-    "imagenet_vlad": ("image", "the same features, VLAD over a k-means vocabulary of the training split (AnyLoc's way)"),
+    "imagenet_vlad": ("image", "the same features, VLAD over a k-means vocabulary of the training split "
+                               "(AnyLoc's way)"),
     "imagenet_triplet": ("image", "ImageNet EfficientNet-Lite2's head + GeM fine-tuned with the GCN's triplet loss and "
                                   "budget (trunk frozen)"),
 }

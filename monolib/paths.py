@@ -53,7 +53,9 @@ def cell_dir(study_name: str, method: str, scenario: str, threshold: float, seed
 
 DEFAULT_STUDY = "quick"
 # the studies whose results are committed, and where (every other study writes into runs/<study>/figures/)
-COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "direction": "direction", "colour": "colour", "perception_long": "perception_long", "scratch": "scratch", "real": "real", "real_full": "real_full"}
+COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "direction": "direction", "colour": "colour",
+                     "perception_long": "perception_long", "scratch": "scratch", "real": "real",
+                     "real_full": "real_full"}
 
 
 def figures_dir(study_name: str) -> Path:

@@ -36,8 +36,8 @@ def smoke_study():
 # process, one after another in file order as without xdist: their group is "runs". The files that only read the
 # smoke study's cells and inputs (a Dask cluster's cells and warm kernels compared with them, into folders of their
 # own) form a second group, and every other file works in a temporary folder of its own.
-WRITES_RUNS = ("smoke_study", "paths.study_dir", "paths.figures_dir", "paths.cell_dir", "monolib.cli", "paths.NOTEBOOKS",
-               "papermill")
+WRITES_RUNS = ("smoke_study", "paths.study_dir", "paths.figures_dir", "paths.cell_dir", "monolib.cli",
+               "paths.NOTEBOOKS", "papermill")
 READS_SMOKE_CELLS = ("tests/test_cluster.py", "tests/test_kernels.py")
 
 

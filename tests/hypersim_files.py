@@ -63,7 +63,8 @@ def write_setting(root: Path, setting: str = "ai_037_002", M=AI_037_002_M, heigh
             w = csv.writer(f)
             if new:
                 w.writerow(["scene_name", "settings_output_img_height", "settings_output_img_width",
-                            "settings_units_info_meters_scale"] + [f"M_cam_from_uv_{i}{j}" for i in range(3) for j in range(3)])
+                            "settings_units_info_meters_scale"]
+                           + [f"M_cam_from_uv_{i}{j}" for i in range(3) for j in range(3)])
             w.writerow([setting, "768.0", "1024.0", MPAU] + [M[i][j] for i in range(3) for j in range(3)])
     path = root / SPLIT_CSV
     new = not path.exists()

@@ -30,7 +30,8 @@ from monolib.perception import depth
 BN = ("weight", "bias", "running_mean", "running_var", "num_batches_tracked")
 ENC = "depth_model.encoder_modules.encoder."
 DEC = "depth_model.decoder_modules."
-LAYERS = {"resnet50": (3, 4, 6, 3), "resnext101_32x8d": (3, 4, 23, 3)}  # Resnet.resnet50, Resnext_torch.resnext101_32x8d
+# Resnet.resnet50, Resnext_torch.resnext101_32x8d
+LAYERS = {"resnet50": (3, 4, 6, 3), "resnext101_32x8d": (3, 4, 23, 3)}
 
 
 def _bn(p):
@@ -196,7 +197,8 @@ def test_resnext101_original_layout_loads(tmp_path):
     torch.testing.assert_close(out, want, rtol=0, atol=0)
 
     # the ResNeXt101 file into a ResNet50 model: wrong architecture, a ValueError naming the file
-    with pytest.raises(ValueError, match=r"res101\.pth.*does not match.*0 missing keys; 306 unexpected keys.*; [1-9]\d* keys of the wrong shape"):
+    with pytest.raises(ValueError, match=r"res101\.pth.*does not match.*0 missing keys; 306 unexpected keys.*; "
+                                         r"[1-9]\d* keys of the wrong shape"):
         depth.load_adelai_checkpoint(uninitialised("resnet50"), path)
 
 
@@ -237,7 +239,8 @@ def test_missing_decoder_key_raises(tmp_path, res50_state):
 
 def test_wrong_layout_raises(tmp_path, res50_state):
     state = {k.replace(ENC, "depth_model.encoder_modules.backbone."): v for k, v in res50_state.items()}
-    with pytest.raises(ValueError, match=r"bad\.pth.*265 missing keys.*; 318 unexpected keys"):  # 53 BN counters tolerated
+    # 53 BN counters tolerated
+    with pytest.raises(ValueError, match=r"bad\.pth.*265 missing keys.*; 318 unexpected keys"):
         _load(tmp_path, state)
     no_depth_model = {k[len("depth_model."):]: v for k, v in res50_state.items()}
     with pytest.raises(ValueError, match=r"bad\.pth.*no keys under 'depth_model\.'"):
@@ -247,25 +250,29 @@ def test_wrong_layout_raises(tmp_path, res50_state):
 def test_module_prefix_only_stripped_when_on_every_key(tmp_path, res50_state):
     """As strip_prefix_if_present: a partly prefixed dict keeps its prefixes, so strict loading fails."""
     state = {("module." + k if k.startswith(DEC) else k): v for k, v in res50_state.items()}
-    with pytest.raises(ValueError, match=r"bad\.pth.*80 missing keys.*; 88 unexpected keys \(e\.g\. module\.depth_model\.decoder"):
+    with pytest.raises(ValueError, match=r"bad\.pth.*80 missing keys.*; 88 unexpected keys "
+                                         r"\(e\.g\. module\.depth_model\.decoder"):
         _load(tmp_path, state)
 
 
 def test_extra_and_duplicate_keys_raise(tmp_path, res50_state):
     state = dict(res50_state)
     state["depth_model.encoder_modules.encoder.fc.weight"] = torch.zeros(1000, 2048)
-    with pytest.raises(ValueError, match=r"bad\.pth.*0 missing keys; 1 unexpected keys \(e\.g\. depth_model\.encoder_modules\.encoder\.fc"):
+    with pytest.raises(ValueError, match=r"bad\.pth.*0 missing keys; 1 unexpected keys "
+                                         r"\(e\.g\. depth_model\.encoder_modules\.encoder\.fc"):
         _load(tmp_path, state)
     both = dict(res50_state)
     both["depth_model.encoder_modules.conv1.weight"] = res50_state[ENC + "conv1.weight"]
-    with pytest.raises(ValueError, match=r"bad\.pth.*0 missing keys; 1 unexpected keys \(e\.g\. depth_model\.encoder_modules\.conv1\.weight\)"):
+    with pytest.raises(ValueError, match=r"bad\.pth.*0 missing keys; 1 unexpected keys "
+                                         r"\(e\.g\. depth_model\.encoder_modules\.conv1\.weight\)"):
         _load(tmp_path, both)
 
 
 def test_wrong_shape_and_unreadable_file_raise(tmp_path, res50_state):
     state = dict(res50_state)
     state[DEC + "conv1.weight"] = torch.zeros(128, 512, 3, 3)
-    with pytest.raises(ValueError, match=r"bad\.pth.*1 keys of the wrong shape \(e\.g\. decoder_modules\.conv1\.weight \(128, 512, 3, 3\) vs \(256, 512, 3, 3\)"):
+    with pytest.raises(ValueError, match=r"bad\.pth.*1 keys of the wrong shape \(e\.g\. decoder_modules\.conv1\.weight "
+                                         r"\(128, 512, 3, 3\) vs \(256, 512, 3, 3\)"):
         _load(tmp_path, state)
     (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match=r"junk\.pth"):

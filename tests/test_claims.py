@@ -12,7 +12,7 @@ import yaml
 
 from monolib import paths
 from monolib.params import load_study
-from monolib.report import claims, results, statistics, verify
+from monolib.report import claims, statistics, verify
 from monolib.retrieval import grid
 
 
@@ -97,7 +97,8 @@ def test_claims_on_synthetic_rankings(toy, tmp_path):
 @pytest.mark.parametrize("entry, message", [
     ({**claim("x", A, B, "above"), "colour": "red"}, r"claims.yaml: toy\[0\].colour: unknown key"),
     (claim("x", {**A, "seed": 1}, B, "above"), r"toy\[0\] \(x\).a.seed: unknown key"),
-    (claim("x", A, B, "beside"), r"toy\[0\] \(x\).relation: expected one of above, below, level, not_above, not_below, got 'beside'"),
+    (claim("x", A, B, "beside"),
+     r"toy\[0\] \(x\).relation: expected one of above, below, level, not_above, not_below, got 'beside'"),
     (claim("x", A, B, "above", "{a} is {c}"), r"toy\[0\] \(x\).sentence: unknown placeholder \{c\}"),
     ({**claim("x", A, B, "above"), "metric": "map@1"}, r"\(x\).metric: expected recall@K or precision@K"),
     (claim("x", A, {**B, "protocol": "siblings"}, "above"), r"\(x\): a and b on protocols 'paper' and 'siblings'"),

@@ -38,7 +38,8 @@ def test_the_digest_names_the_setting_and_kind_that_changed(tmp_path):
     shutil.rmtree(root / "ai_900_001")
     (root / "metadata_images_split_scene_v1.csv").write_text("other\n")
     lines = digest.differences(before, digest.digest(root))
-    assert lines[:2] == ["metadata_images_split_scene_v1.csv: differs", "setting ai_900_001: missing from the fresh dataset"]
+    assert lines[:2] == ["metadata_images_split_scene_v1.csv: differs",
+                         "setting ai_900_001: missing from the fresh dataset"]
 
 
 def test_verify_compares_the_dataset_first_and_names_what_differs(tmp_path):

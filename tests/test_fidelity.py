@@ -1,5 +1,5 @@
-"""Data fidelity (monolib.graphs.fidelity): known answers on hand-built graphs, agreement with the shared reference script,
-and the real published sample."""
+"""Data fidelity (monolib.graphs.fidelity): known answers on hand-built graphs, agreement with the shared reference
+script, and the real published sample."""
 import dataclasses
 import json
 import math
@@ -110,7 +110,8 @@ def test_empty_inputs_give_nan_not_a_crash(tmp_path, monkeypatch):
     study = dataclasses.replace(load_study("smoke"), name="empty_test")
     _, md = fidelity.write(study, {"this study, train": fidelity.split_statistics([]), "this study, test": stats})
     text = md.read_text()
-    assert "NaN / NaN / NaN / NaN" in text and "0 of 23 pass" in text and "wall colour ratio (graph node colours) >= 2.0: NaN FAIL" in text
+    assert ("NaN / NaN / NaN / NaN" in text and "0 of 23 pass" in text
+            and "wall colour ratio (graph node colours) >= 2.0: NaN FAIL" in text)
     assert "pixel depth, median in [4, 5.6]: NaN FAIL" in text
 
 
@@ -138,7 +139,8 @@ def test_reference_file_is_read_and_the_tables_are_written(tmp_path, monkeypatch
     assert ("| nodes per graph: mean / median / p10 / p90 | 3.0 / 3 / 3 / 3 | 3.0 / 3 / 3 / 3 | 8.2 / 9 / 3 / 12 "
             "| 2.8 / 2 / 1 / 6 |") in md
     assert "| wall colour sd within / between settings (ratio), node colours (hdr) | 0.20 / 1.00 (5.0) |" in md
-    assert "| wall colour sd within / between settings (ratio), the graphs' node colours (hdr) | NaN / NaN (NaN) |" in md
+    assert ("| wall colour sd within / between settings (ratio), the graphs' node colours (hdr) | NaN / NaN (NaN) |"
+            in md)
     assert "| wall colour sd within / between settings (ratio), HDR color.hdf5 medians | NaN / NaN (NaN) |" in md
     assert ref["real Hypersim, train"]["pair length (monograph), median"] == 4.31
     assert ref["real Hypersim, test"]["edges per graph at 10 m (monograph)"] == 4.07
@@ -148,7 +150,8 @@ def test_reference_file_is_read_and_the_tables_are_written(tmp_path, monkeypatch
     assert "real Hypersim, train (169 settings)" in md and "this study, train (2 settings)" in md
     assert "Label frequency, real Hypersim, train (share of graphs): wall 0.91, floor 0.86, otherprop 0.73" in md
     assert "Label frequency, this study, train (share of graphs): wall 1.00, floor 1.00, cabinet 0.50, bed 0.50." in md
-    assert "nodes per graph mean 7-10: 3.0 FAIL" in md and "wall colour ratio (graph node colours) >= 2.0: 5.0 pass" in md
+    assert ("nodes per graph mean 7-10: 3.0 FAIL" in md
+            and "wall colour ratio (graph node colours) >= 2.0: 5.0 pass" in md)
     assert "floor colour ratio (graph node colours) >= 2.0:" in md and "wall in >= 30% of graphs: 1.00 pass" in md
     assert "otherprop in >= 30% of graphs: 0.00 FAIL" in md
 
@@ -317,7 +320,8 @@ def hypersim_study(tmp_path, root, projection: str = "exact"):
     from monolib.params import load_study
 
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
-    data.update(name="light_test", scenarios={"s1": {"depth": "gt", "semantic": "gt"}}, graphs={"projection": projection})
+    data.update(name="light_test", scenarios={"s1": {"depth": "gt", "semantic": "gt"}},
+                graphs={"projection": projection})
     data["dataset"].update(source="hypersim", root=str(root), workers=1, train_frames_per_setting=20)
     data["protocol"].update(settings=2, siblings=0, frames=2, queries=1, positives=1)
     data["gcn"].update(val_settings=0)

@@ -115,7 +115,8 @@ def test_the_mini_hypersim_refuses_folds_and_keeps_its_keys(monkeypatch):
                                                                                  0, inputs="I")
         assert cell.cell_folder(s, "gcn", "s1", 1.0, 0) == paths.RUNS / name / "cells" / "gcn" / "s1__t1__s0"
     from monolib.params import SYNTH_TRAIN_SETTINGS, DatasetSpec
-    assert DatasetSpec().train_settings == SYNTH_TRAIN_SETTINGS and DatasetSpec(source="hypersim").train_settings is None
+    assert (DatasetSpec().train_settings == SYNTH_TRAIN_SETTINGS
+            and DatasetSpec(source="hypersim").train_settings is None)
     s = load_study("smoke", check_files=False)
     s.protocol.split = "volumes"
     from monolib.params import _check
@@ -141,7 +142,8 @@ def test_a_killed_fold_resumes_and_the_cells_record_their_fold(tmp_path, release
     records = {f: read_json(cells[f] / "cell.json") for f in (0, 1, 2)}
     assert {f: r["fold"] for f, r in records.items()} == {0: 0, 1: 1, 2: 2}
     for r in records.values():  # the fold assignment read from the cells: no volume on both sides
-        assert r["volumes"]["test"] and r["volumes"]["train"] and not set(r["volumes"]["test"]) & set(r["volumes"]["train"])
+        assert (r["volumes"]["test"] and r["volumes"]["train"]
+                and not set(r["volumes"]["test"]) & set(r["volumes"]["train"]))
     assert "fold" not in read_json(cells[None] / "cell.json")
     tested = [{family(s) for s in r["protocols"]["paper"]["settings"]} for r in records.values()]
     assert not tested[0] & tested[1] and not tested[1] & tested[2] and not tested[0] & tested[2]
@@ -174,7 +176,8 @@ def test_the_report_over_folds(tmp_path, release, monkeypatch):
     assert out == tmp_path / "runs" / study.name / "figures"
     t1 = pd.read_csv(out / "folds_table1_recall.csv")
     assert set(t1["n_folds"]) == {3} and set(t1["n_seeds"]) == {2}
-    assert t1["release"].notna().all() and (t1["folds_lo"] <= t1["folds"]).all() and (t1["folds"] <= t1["folds_hi"]).all()
+    assert (t1["release"].notna().all() and (t1["folds_lo"] <= t1["folds"]).all()
+            and (t1["folds"] <= t1["folds_hi"]).all())
     fid = pd.read_csv(out / "folds.csv")
     assert list(fid["split"]) == ["release", "fold 0", "fold 1", "fold 2"]
     assert (fid["test settings"] == 2).all() and fid["nodes / graph"].between(2, 9).all()

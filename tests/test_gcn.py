@@ -20,7 +20,8 @@ def toy_graphs(n_settings=4, per=6, seed=0):
             colour = np.full((len(labels), 3), s / n_settings) + rng.normal(0, 0.02, (len(labels), 3))
             x = np.column_stack([labels, colour]).astype(np.float32)
             pos = rng.normal(size=(len(labels), 3)).astype(np.float32)
-            graphs.append(at_threshold(complete_graph(x, pos, f"ai_900_{s:03d}", f"ai_900_{s:03d}/cam_00/{i:04d}"), 1.5))
+            graphs.append(at_threshold(complete_graph(x, pos, f"ai_900_{s:03d}", f"ai_900_{s:03d}/cam_00/{i:04d}"),
+                                       1.5))
     return graphs
 
 

@@ -61,7 +61,10 @@ def test_complete_graph_then_threshold_equals_direct_build():
     for t in (0.3, 1.0, 2.0, math.inf):
         direct = build_scene_graph(rgb, depth, semantic, cam, t)
         via = at_threshold(full, t)
-        as_set = lambda ei: set(map(tuple, ei.t().tolist()))
+
+        def as_set(ei):
+            return set(map(tuple, ei.t().tolist()))
+
         assert as_set(direct.edge_index) == as_set(via.edge_index)
         assert via.edge_index.shape[1] % 2 == 0
 

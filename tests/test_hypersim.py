@@ -17,7 +17,8 @@ def tilt_root(tmp_path):
 
 
 def test_index_lists_settings_scenes_frames_without_opening_images(tilt_root):
-    (tilt_root / "ai_037_002" / "images" / "scene_cam_00_geometry_hdf5" / "frame.0001.semantic.hdf5").write_bytes(b"junk")
+    (tilt_root / "ai_037_002" / "images" / "scene_cam_00_geometry_hdf5"
+     / "frame.0001.semantic.hdf5").write_bytes(b"junk")
     ds = HypersimDataset(tilt_root)
     assert ds.settings() == ["ai_037_002"]
     assert ds.settings("test") == ["ai_037_002"] and ds.settings("train") == []

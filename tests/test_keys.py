@@ -202,4 +202,5 @@ def test_a_new_k_is_computed_from_the_rankings_without_training(smoke_study, tmp
         assert metrics == results.recompute_metrics(rankings[name], [1, 2, 3], [1, 10])
     assert json.loads((folder / "cell.json").read_text())["metrics"] == record["metrics"]
     assert {p.name: p.read_bytes() for p in folder.iterdir() if p.name != "cell.json"} == before
-    assert record["metrics"]["paper"]["recall@1"] == json.loads((source / "cell.json").read_text())["metrics"]["paper"]["recall@1"]
+    assert (record["metrics"]["paper"]["recall@1"]
+            == json.loads((source / "cell.json").read_text())["metrics"]["paper"]["recall@1"])

@@ -4,7 +4,10 @@ another of monolib inside a function only to defer a heavy library, saying so on
 from __future__ import annotations
 
 import ast
+import importlib.util
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -42,7 +45,8 @@ def imports(path: Path):
         if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "monolib":
             targets = [node.module] if node.module != "monolib" else [f"monolib.{a.name}" for a in node.names]
             if node.module != "monolib":
-                targets = [f"{node.module}.{a.name}" if (PACKAGE.parent / f"{node.module}.{a.name}".replace(".", "/")).with_suffix(".py").exists()
+                targets = [f"{node.module}.{a.name}"
+                           if (PACKAGE.parent / f"{node.module}.{a.name}".replace(".", "/")).with_suffix(".py").exists()
                            or (PACKAGE.parent / f"{node.module}.{a.name}".replace(".", "/")).is_dir() else node.module
                            for a in node.names]
         elif isinstance(node, ast.Import):
@@ -136,3 +140,13 @@ def test_code_and_studies_say_what_is_not_when():
                 if pattern.search(line):
                     found.append(f"{f.relative_to(PACKAGE.parent)}:{n}: {what}: {line.strip()[:120]}")
     assert not found, "\n".join(found)
+
+
+def test_ruff_finds_nothing():
+    """`ruff check` with the settings of pyproject.toml's [tool.ruff] passes on monolib/, tests/ and notebooks/ (what
+    `make test-fast` runs first)."""
+    if importlib.util.find_spec("ruff") is None:
+        pytest.skip("ruff is not installed (the test extras install it: pip install -e '.[test]')")
+    done = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "monolib", "tests", "notebooks"],
+                          cwd=PACKAGE.parent, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout + done.stderr

@@ -16,7 +16,8 @@ def histories(peaks: dict[str, int], seeds: int = 3, epochs: int = 40) -> pd.Dat
 
 def test_each_rule_reads_the_runs_of_its_own_training():
     by_name = {r.name: r for r in RULES}
-    rules = [by_name[n] for n in ("val mAP, patience 6", "fixed 20 epochs", "lr 0.003: val mAP from epoch 10, patience 6",
+    rules = [by_name[n] for n in ("val mAP, patience 6", "fixed 20 epochs",
+                                  "lr 0.003: val mAP from epoch 10, patience 6",
                                   "lr 0.003: fixed 15 epochs", "lr 0.003, cosine: fixed 20 epochs")]
     table = rules_table(histories({"lr 0.001": 2, "lr 0.003": 15}), rules)
     row = table[table["method"] == "gcn"].set_index("rule")
@@ -28,7 +29,8 @@ def test_each_rule_reads_the_runs_of_its_own_training():
     assert row.loc["lr 0.003: fixed 15 epochs", "epochs_run"] == 15
     assert "lr 0.003, cosine: fixed 20 epochs" not in row.index  # no run of that training: no row, no error
     overall = table[table["method"] == "all"].set_index("rule")
-    assert overall.loc["fixed 20 epochs", "seed_sd"] == pytest.approx(0.0, abs=1e-9) and overall.loc["fixed 20 epochs", "runs"] == 3
+    assert (overall.loc["fixed 20 epochs", "seed_sd"] == pytest.approx(0.0, abs=1e-9)
+            and overall.loc["fixed 20 epochs", "runs"] == 3)
 
 
 def test_the_study_rule_is_the_one_its_gcn_settings_train_by():

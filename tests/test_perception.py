@@ -30,7 +30,8 @@ def make_tiny_dataset(root: Path, train: int = 4, test: int = 2, frames: int = 6
     """
     rng = np.random.default_rng(seed)
     rows = []
-    names = [(f"ai_001_{i + 1:03d}", "train") for i in range(train)] + [(f"ai_{i + 2:03d}_001", "test") for i in range(test)]
+    names = ([(f"ai_001_{i + 1:03d}", "train") for i in range(train)]
+             + [(f"ai_{i + 2:03d}_001", "test") for i in range(test)])
     for s, (setting, part) in enumerate(names):
         for k in range(frames):
             sem = np.ones((H, W), np.int16)
@@ -64,7 +65,8 @@ def make_tiny_dataset(root: Path, train: int = 4, test: int = 2, frames: int = 6
             rows.append([setting, "cam_00", k, "True", "", part])
     with open(root / "metadata_images_split_scene_v1.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["scene_name", "camera_name", "frame_id", "included_in_public_release", "exclude_reason", "split_partition_name"])
+        w.writerow(["scene_name", "camera_name", "frame_id", "included_in_public_release", "exclude_reason",
+                    "split_partition_name"])
         w.writerows(rows)
 
 
@@ -187,7 +189,8 @@ def test_run_caches_and_round_trips(tiny_study):
     seg_name = tiny_study.perception.segmentation.name
     d_name = tiny_study.perception.depth[0].name
     # every frame is cached; the cache equals what the saved model predicts (write -> read equals)
-    model = segmentation.load_model(tiny_study.perception.segmentation, perception.model_dir(tiny_study, seg_name) / "model.pt")
+    model = segmentation.load_model(tiny_study.perception.segmentation,
+                                    perception.model_dir(tiny_study, seg_name) / "model.pt")
     fresh = segmentation.predict(model, np.stack([f.rgb for f in frames[:4]]), amp=tiny_study.perception.amp)
     read = perception.semantic_source(tiny_study, seg_name)
     assert all(np.array_equal(read(f), p) for f, p in zip(frames[:4], fresh))
@@ -327,7 +330,8 @@ def _untrained(study):
     from monolib.perception import depth, segmentation
 
     torch.manual_seed(0)
-    nets = [(study.perception.segmentation.name, "segmentation", segmentation.build_model(study.perception.segmentation))]
+    nets = [(study.perception.segmentation.name, "segmentation",
+             segmentation.build_model(study.perception.segmentation))]
     nets += [(d.name, "depth", depth.build_model(d)) for d in study.perception.depth[:1]]
     x = segmentation.normalise(segmentation.to_batch([f.rgb for f in _frames(study).train[::3]]))
     for _, _, model in nets:
@@ -394,7 +398,8 @@ def test_the_passes_read_each_frame_once_and_predict_the_same(tiny_study, monkey
         from_files = _read_predictions(tiny_study, name, frames)
         for f in frames:
             perception_path(tiny_study, name, f).unlink()
-        assert perception._predict_all(tiny_study, name, model, frames, progress=False, rgb=shared)[:2] == (len(frames),) * 2
+        assert perception._predict_all(tiny_study, name, model, frames, progress=False,
+                                       rgb=shared)[:2] == (len(frames),) * 2
         held = _read_predictions(tiny_study, name, frames)
         assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(from_files, held)), name
     assert len(reads) == len(nets) * len(frames) + len(frames)  # each pass from the files, and the shared read once

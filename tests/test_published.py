@@ -208,7 +208,8 @@ def test_a_published_study_runs_a_cell(tmp_path, monkeypatch):
     assert r["test_edges_mean"] >= edges["ours"] and 0 <= r["metrics"]["paper"]["recall@1"] <= 100
 
 
-SAMPLE = published.Path(__file__).resolve().parents[2] / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"
+SAMPLE = (published.Path(__file__).resolve().parents[2] / "shared" / "data" / "published_graphs_sample"
+          / "ai_001_001_00_graphs.pt")
 
 
 @pytest.mark.skipif(not SAMPLE.exists(), reason="shared published graph sample absent")

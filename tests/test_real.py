@@ -207,6 +207,6 @@ def test_model_selection_on_a_study_of_folds_holds_out_volumes_of_fold_0s_traini
     df = ms.curves(study, (("gcn", 1.0), ("image_triplet", math.inf)), seeds=[0], workers=1, trainings=(training,),
                    families=families)
     assert set(df["method"]) == {"gcn"} and list(df["epoch"]) == [1, 2] and df["inner_recall@1"].between(0, 1).all()
-    md = ms.markdown(ms.rules_table(df, [ms.Rule("fixed 2", "last", 1, 2, 2, training.name)]), ms.best_possible(df), study.name,
-                     1.0, families=families, volumes=True)
+    md = ms.markdown(ms.rules_table(df, [ms.Rule("fixed 2", "last", 1, 2, 2, training.name)]), ms.best_possible(df),
+                     study.name, 1.0, families=families, volumes=True)
     assert f"{families} volumes of fold 0's training side held out as an inner test" in md

@@ -15,7 +15,7 @@ import pytest
 matplotlib.use("agg")
 
 from monolib import paths
-from monolib.report import tables  # noqa: E402
+from monolib.report import tables
 from monolib.report import figures, results, statistics, write as report
 
 A, B, C = "ai_001_001", "ai_001_002", "ai_002_001"
@@ -42,7 +42,8 @@ HAND = {
 
 
 def rankings_of(table: dict[str, list[str]]) -> pd.DataFrame:
-    rows = [(q, q.split("/")[0], r, m, m.split("/")[0], 0.1 * r) for q, ms in table.items() for r, m in enumerate(ms, 1)]
+    rows = [(q, q.split("/")[0], r, m, m.split("/")[0], 0.1 * r)
+            for q, ms in table.items() for r, m in enumerate(ms, 1)]
     return pd.DataFrame(rows, columns=results.RANKING_COLUMNS)
 
 
@@ -190,7 +191,10 @@ def test_summary_mean_std_n(study):
 def test_paper_tables_transcription():
     p = results.paper_tables()
     assert len(p) == 4 * 5 * 6
-    get = lambda sc, t, m, k: p[(p.scenario == sc) & (p.threshold == t) & (p.metric == m) & (p.k == k)]["value"].item()
+
+    def get(sc, t, m, k):
+        return p[(p.scenario == sc) & (p.threshold == t) & (p.metric == m) & (p.k == k)]["value"].item()
+
     assert get("s1", 1.0, "recall", 1) == 94.3
     assert get("s4", math.inf, "recall", 10) == 91.0
     assert get("s1", math.inf, "precision", 2) == 90.7
@@ -203,9 +207,9 @@ def test_tables_bold_best_and_paper_numbers(study, tmp_path):
     assert set(written) == {f"table{i}_{e}" for i in (1, 2) for e in ("md", "csv", "tex")}
     md = written["table1_md"].read_text()
     # s1 recall@1: threshold 1 is best: 3 and 4 of 6 queries right, 58.3 ± 11.8, bold; paper 94.3 beside it
-    line = next(l for l in md.splitlines() if l.startswith("| gcn | s1: GT depth, GT semantics | 1 |"))
+    line = next(ln for ln in md.splitlines() if ln.startswith("| gcn | s1: GT depth, GT semantics | 1 |"))
     assert "**58.3 ± 11.8**" in line and "94.3" in line
-    line_inf = next(l for l in md.splitlines() if "| ∞ |" in l and "gcn" not in l.split("|")[1] + "x")
+    line_inf = next(ln for ln in md.splitlines() if "| ∞ |" in ln and "gcn" not in ln.split("|")[1] + "x")
     assert "**" not in line_inf.split("|")[4]
     assert "color_hist | RGB only" in md and "n = 2 seeds" in md
     tex = written["table1_tex"].read_text()
@@ -267,7 +271,8 @@ def test_report_refuses_a_cell_whose_metrics_disagree_with_its_rankings(study):
     cell = json.loads((folder / "cell.json").read_text())
     cell["metrics"]["precision@4"] += 0.5
     (folder / "cell.json").write_text(json.dumps(cell))
-    with pytest.raises(results.CellMismatchError, match="paper precision@4 is .* in cell.json but .* from rankings.csv"):
+    with pytest.raises(results.CellMismatchError,
+                       match="paper precision@4 is .* in cell.json but .* from rankings.csv"):
         results.query_table(study)
     with pytest.raises(results.CellMismatchError, match=re.escape(str(folder))):
         report.write_report(study)
@@ -403,7 +408,10 @@ def _u(*parts) -> float:
 
 def write_rich_cell(study, method, scenario, threshold, seed):
     p = P_HIT[(method, scenario, threshold)]
-    hit = lambda s, i, sd: _u(method, scenario, threshold, s, i, sd) < (p * 0.5 if s in DIM else p)
+
+    def hit(s, i, sd):
+        return _u(method, scenario, threshold, s, i, sd) < (p * 0.5 if s in DIM else p)
+
     r = draw_rankings(hit, seed, queries=6)
     d = paths.cell_dir(study, method, scenario, threshold, seed)
     d.mkdir(parents=True)
@@ -462,7 +470,7 @@ def test_rich_report_tables_ablation_light_depth(rich, capsys):
 
     md = written["table1_md"].read_text()
     assert "s1x2" not in md                                  # in_tables: false
-    line = next(l for l in md.splitlines() if l.startswith("|  |  | ∞ |"))
+    line = next(ln for ln in md.splitlines() if ln.startswith("|  |  | ∞ |"))
     assert line.split("|")[4].strip().endswith(tables.DAGGER)  # recall@1 at ∞: significantly below t = 1
     assert "†: significantly below the best threshold" in md and "95% bootstrap interval" in md
     csv = pd.read_csv(written["table1_csv"])
@@ -834,7 +842,8 @@ def test_edge_penalty_is_each_threshold_against_the_same_encoder_without_edges(t
     means = iv[(iv.protocol == "paper") & (iv.method == "gcn") & (iv.metric == "recall") & (iv.k == 1)]
     means = means.set_index("threshold")["mean"]
     for r in table.itertuples():
-        assert r.no_edges == pytest.approx(means[0.0], abs=1e-3) and r.mean == pytest.approx(means[r.threshold], abs=1e-3)
+        assert (r.no_edges == pytest.approx(means[0.0], abs=1e-3)
+                and r.mean == pytest.approx(means[r.threshold], abs=1e-3))
         assert r.diff == pytest.approx(means[r.threshold] - means[0.0], abs=1e-3) and r.ci_lo <= r.diff <= r.ci_hi
     md = written["edge_penalty_md"].read_text()
     assert "What the edges cost" in md and "| `gcn` |" in md and "Δ at ∞ m" in md

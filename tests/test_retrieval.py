@@ -177,7 +177,8 @@ def test_candidates_per_protocol():
             expected = {f for f in table["frame"] if (f.split("/")[0] != own) or role[f] == "positive"}
             assert set(g["match"]) == expected, (name, q)
         assert r.metrics == pytest.approx(metrics_from_hits(
-            (r.rankings.match_setting == r.rankings.query_setting).to_numpy().reshape(len(set(r.rankings["query"])), -1),
+            (r.rankings.match_setting == r.rankings.query_setting).to_numpy().reshape(
+                len(set(r.rankings["query"])), -1),
             [1], [2]))
     # the draws are seeded per protocol: the same cell seed gives the same draws, another protocol another seed
     again = evaluate_protocols(emb, frames, settings, pr, seed=5)
@@ -202,7 +203,8 @@ def test_a_sibling_that_looks_alike_fools_only_the_siblings_protocol():
         else:
             emb[i] = 0.5 if settings[i] == "ai_001_002" else 100.0
     out = evaluate_protocols(emb, frames, settings, pr, seed=0)
-    top1 = {n: r.rankings[(r.rankings["rank"] == 1) & (r.rankings.query_setting == "ai_001_001")] for n, r in out.items()}
+    top1 = {n: r.rankings[(r.rankings["rank"] == 1) & (r.rankings.query_setting == "ai_001_001")]
+            for n, r in out.items()}
     assert len(top1["paper"]) == len(top1["siblings"]) == 2
     assert (top1["paper"].match_setting == "ai_001_001").all()
     assert (top1["siblings"].match_setting == "ai_001_002").all()

@@ -167,7 +167,8 @@ def test_cells_with_the_graphs_of_a_smaller_threshold_are_exact_copies(smoke_stu
     again = cell.run_cell(s, c["method"], c["scenario"], thr, c["seed"], out_dir=str(tmp_path / "again"))
     assert again["metrics"] == c["metrics"]
     folder = paths.cell_dir("smoke", c["method"], c["scenario"], thr, c["seed"])
-    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "again" / "rankings.csv"), pd.read_csv(folder / "rankings.csv"))
+    pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "again" / "rankings.csv"),
+                                  pd.read_csv(folder / "rankings.csv"))
 
 
 def test_cells_reading_the_inputs_of_another_scenario_are_exact_copies(smoke_study, tmp_path):
@@ -236,7 +237,8 @@ def test_papermill_cell_with_unlisted_threshold_and_seed(smoke_study, tmp_path, 
     cell = json.loads((out / "cell.json").read_text())
     assert cell["threshold"] == 3.7 and cell["seed"] == 11 and cell["method"] == "gcn"
     rankings = pd.read_csv(out / "rankings.csv")
-    assert list(rankings.columns) == ["protocol", "query", "query_setting", "rank", "match", "match_setting", "distance"]
+    assert list(rankings.columns) == ["protocol", "query", "query_setting", "rank", "match", "match_setting",
+                                      "distance"]
     s = load_study("smoke")
     n_settings = s.protocol.settings + 2 * s.protocol.siblings
     assert rankings["rank"].max() == 10 and len(rankings) == 10 * n_settings * s.protocol.queries
@@ -335,7 +337,8 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path, capsys, m
     monkeypatch.chdir(tmp_path)
     bad = tmp_path / "broken.jpg"
     bad.write_bytes(b"not an image")
-    for args, message in ((["nope.png"], "nope.png: image file not found"), ([str(bad)], "broken.jpg: not a readable image")):
+    for args, message in ((["nope.png"], "nope.png: image file not found"),
+                          ([str(bad)], "broken.jpg: not a readable image")):
         assert cli.main(["localize", *args, "--db", str(db)]) == 2
         err = capsys.readouterr().err
         assert message in err, err[-2000:]

@@ -89,7 +89,8 @@ def test_plan_families_splits_and_names(smoke_study):
         for s in test:
             members.setdefault(s["family"], []).append(s["member"])
         assert len(members) == ds.test_settings
-        assert [len(m) for m in members.values()] == [2] * ds.test_siblings + [1] * (ds.test_settings - ds.test_siblings)
+        assert [len(m) for m in members.values()] == ([2] * ds.test_siblings
+                                                      + [1] * (ds.test_settings - ds.test_siblings))
         train = [s for s in plan if s["split"] == "train"]
         sizes = {}
         for s in train:

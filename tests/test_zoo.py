@@ -18,8 +18,8 @@ pytestmark = pytest.mark.slow  # the zoo trains networks on the smoke data
 
 @pytest.fixture(scope="module")
 def shipped(smoke_dataset, tmp_path_factory):
-    """`monolib.perception.zoo.run` on the smoke study's data (pretraining and evaluation on the same small split: a test of
-    the machinery, not of the pretraining's value), for the segmentation net and one depth net."""
+    """`monolib.perception.zoo.run` on the smoke study's data (pretraining and evaluation on the same small split: a
+    test of the machinery, not of the pretraining's value), for the segmentation net and one depth net."""
     runs = tmp_path_factory.mktemp("zoo_runs")
     old = paths.RUNS
     paths.RUNS = runs
@@ -55,7 +55,8 @@ def test_the_manifest_describes_the_file(shipped):
         assert m == manifests[name]
         weights = out / m["file"]
         # the file's hash computed here, not by the code that wrote the manifest
-        assert m["sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest() and m["bytes"] == len(weights.read_bytes())
+        assert (m["sha256"] == hashlib.sha256(weights.read_bytes()).hexdigest()
+                and m["bytes"] == len(weights.read_bytes()))
         assert m["command"].startswith("monolib zoo") and m["study_file"] == "params/smoke.yaml"
         assert m["data_key"] and m["machine"] and m["device"] and m["train_seconds"] > 0 and m["epochs"] >= 1
         assert m["evaluated_on"]["test_frames"] > 0
@@ -133,7 +134,8 @@ def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, 
     lone = tmp_path / "lone.pt"
     lone.write_bytes((out / "deeplab.pt").read_bytes())
     with pytest.raises(StudyError, match="no manifest lone.json"):
-        perception.check_weights(load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(lone)}})))
+        perception.check_weights(load_study(study_file(tmp_path, smoke_dataset,
+                                                       {"segmentation": {"weights": str(lone)}})))
     with pytest.raises(StudyError, match="file not found"):
         load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(tmp_path / "none.pt")}}))
     with pytest.raises(StudyError, match="not both"):

@@ -290,7 +290,8 @@ class HypersimDataset:
                 try:
                     cams[row["scene_name"]] = camera_from_row(row, row["scene_name"])
                 except (KeyError, ValueError) as exc:
-                    raise DataFileError(f"{path}: row {row.get('scene_name')!r} has no valid M_cam_from_uv ({exc})") from exc
+                    raise DataFileError(f"{path}: row {row.get('scene_name')!r} has no valid M_cam_from_uv "
+                                        f"({exc})") from exc
         return cams
 
     # index
@@ -312,7 +313,8 @@ class HypersimDataset:
 
     def frame(self, setting: str, scene: str, index: int) -> Frame:
         if (setting, scene) not in self._frames:
-            raise DataFileError(f"{self.root / setting}: no scene {scene!r} with frames (scenes: {self.scenes(setting)})")
+            raise DataFileError(f"{self.root / setting}: no scene {scene!r} with frames "
+                                f"(scenes: {self.scenes(setting)})")
         return Frame(self, setting, scene, index)
 
     def frame_by_key(self, key: str) -> Frame:
@@ -324,7 +326,8 @@ class HypersimDataset:
         cam = self._cameras.get(setting)
         if cam is None:
             if setting not in self._warned:
-                warnings.warn(f"{setting}: no row in {self.metadata_dir / CAMERA_CSV}; using the canonical 60-degree camera")
+                warnings.warn(f"{setting}: no row in {self.metadata_dir / CAMERA_CSV}; "
+                              "using the canonical 60-degree camera")
                 self._warned.add(setting)
             return Camera.canonical(meters_per_asset_unit=self.meters_per_asset_unit(setting, fallback=False))
         return cam

@@ -1,6 +1,6 @@
 """Which test settings each protocol takes (``paper``, ``siblings``), by name only: read by frame selection
-(`monolib.data.selection`, `monolib.graphs.published`) and by the retrieval stage (`monolib.retrieval.evaluate`), which sit on both sides
-of it. A setting's family is the ``ai_VVV`` part of its name (a Hypersim volume).
+(`monolib.data.selection`, `monolib.graphs.published`) and by the retrieval stage (`monolib.retrieval.evaluate`), which
+sit on both sides of it. A setting's family is the ``ai_VVV`` part of its name (a Hypersim volume).
 """
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ def protocol_settings(settings, protocol: Protocol, where: str = "test split") -
     ``paper``: the first setting (sorted by name) of each of the first `protocol.settings` families (sorted), so
     every setting is of another family; with ``protocol.families`` false (real data), `protocol.settings` settings
     taken in turn from each family (the first of each family in name order, then the second of each, ...), which
-    is the same choice wherever there are enough families. ``siblings`` (when `protocol.siblings` > 0): the first `protocol.siblings`
-    families (sorted) holding at least 2 of the settings, their first two settings each. The rule only reads names,
-    and applied to the union of its own result it gives that result again (what a cell sees). Raises
+    is the same choice wherever there are enough families. ``siblings`` (when `protocol.siblings` > 0): the first
+    `protocol.siblings` families (sorted) holding at least 2 of the settings, their first two settings each. The rule
+    only reads names, and applied to the union of its own result it gives that result again (what a cell sees). Raises
     `ProtocolDataError` naming what is missing."""
     names = sorted(set(map(str, settings)))
     fams: dict[str, list[str]] = {}

@@ -61,7 +61,8 @@ def select_frames(study: Study, ds: HypersimDataset, val_settings: int) -> Selec
         raise ValueError(f"{ds.root} ({label}): {len(train_names)} training settings, need more than {val_settings} "
                          f"(validation)")
     per = study.dataset.train_frames_per_setting
-    fit_names, val_names = train_names[: len(train_names) - val_settings], train_names[len(train_names) - val_settings :]
+    fit_names, val_names = (train_names[: len(train_names) - val_settings],
+                            train_names[len(train_names) - val_settings :])
     train = [f for s in fit_names for f in _evenly(ds.frames(s), per)]
     val = [f for s in val_names for f in _evenly(ds.frames(s), per)]
     return Selection(train, val, test)

@@ -35,8 +35,8 @@ Geometry and light, like with like:
   1/2.2) and beside real Hypersim's (whose published node colours are HDR medians).
 
 The real Hypersim numbers cannot be computed here (the published files are not available); they are transcribed
-from the doc into `monolib/resources/fidelity_reference.csv`. `write(study)` puts `fidelity.csv` (long format: statistic,
-source, value) and `fidelity.md` (the doc's table, the label frequencies and the acceptance targets for the
+from the doc into `monolib/resources/fidelity_reference.csv`. `write(study)` puts `fidelity.csv` (long format:
+statistic, source, value) and `fidelity.md` (the doc's table, the label frequencies and the acceptance targets for the
 generator) into `paths.figures_dir(study.name)`. Whatever cannot be measured (no settings, a label never seen)
 is NaN.
 """
@@ -379,7 +379,10 @@ def _colour_cell(stats: dict[str, float], label: str, kind: str = "") -> str:
 
 def table_rows(stats: dict[str, float]) -> list[str]:
     """The two cells of the scene-graph table for one source (missing statistics: NaN)."""
-    get = lambda name: stats.get(name, float("nan"))
+
+    def get(name):
+        return stats.get(name, float("nan"))
+
     nodes = [_number(get("nodes per graph, mean"), 1)] + [_count(get(f"nodes per graph, {s}")) for s in NODE_STATS[1:]]
     within, across = (_number(get(f"label-set Jaccard, {kind} settings"), 2) for kind in ("within", "across"))
     return [" / ".join(nodes), f"{within} / {across}"]

@@ -10,7 +10,8 @@ That includes pairs with i > j, self-loops (i == i), a pair listed in both direc
 release stores every unordered pair of distinct nodes exactly once, as i < j; a file that does not was written by
 some other tool, and guessing its convention (directed edges? one length per direction, and which one wins?) would
 silently change the graphs the encoder sees (the paper's encoder reads each pair once, i -> j, and the undirected
-encoders both ways, so a pair listed twice would become a doubled edge), so the reader refuses it instead of normalising it.
+encoders both ways, so a pair listed twice would become a doubled edge), so the reader refuses it instead of
+normalising it.
 """
 from __future__ import annotations
 

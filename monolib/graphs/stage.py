@@ -1,8 +1,8 @@
 """The graph stage: one complete scene graph per selected frame and scenario, cached on disk.
 
 A cached graph holds its nodes (`x`, and `pos` when built from depth) and every node pair i < j with its length
-(`pair_index`, `pair_len`). A threshold then only filters pairs (`monolib.graphs.build.at_threshold`), so the five thresholds of the
-ablation share one build, and published graph files (lengths without positions) fit the same format.
+(`pair_index`, `pair_len`). A threshold then only filters pairs (`monolib.graphs.build.at_threshold`), so the five
+thresholds of the ablation share one build, and published graph files (lengths without positions) fit the same format.
 """
 from __future__ import annotations
 
@@ -54,12 +54,13 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
     for role, name in (("depth", sc.depth), ("semantic", sc.semantic)):
         sources[role] = "gt" if name == "gt" else models.get(name) or perception.model_key(study, name, data_key)
     pr = study.protocol  # what chooses the frames (not the k of the metrics, nor the queries' draw)
-    return key_of({**study.fold_key(), "dataset": data_key, "published": published_fingerprint(study), "seed": study.seed,
+    return key_of({**study.fold_key(), "dataset": data_key, "published": published_fingerprint(study),
+                   "seed": study.seed,
                    "frames": {"settings": pr.settings, "siblings": pr.siblings, "families": pr.families,
                               "frames": pr.frames},
                    "val": study.gcn.val_settings, "sources": sources, "depth_scale": sc.depth_scale,
-                   "projection": study.projection(scenario), "colour": study.colour(scenario), "code": versions.code_version("graphs"),
-                   "libraries": versions.library_versions("graphs")})
+                   "projection": study.projection(scenario), "colour": study.colour(scenario),
+                   "code": versions.code_version("graphs"), "libraries": versions.library_versions("graphs")})
 
 
 def published_fingerprint(study: Study) -> Optional[str]:

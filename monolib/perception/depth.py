@@ -30,8 +30,8 @@ from monolib.io import save_torch
 from monolib.params import EFFICIENTNET_BACKBONES
 from monolib.perception import imagenet
 from monolib.perception.segmentation import (
-    FitOptions, as_images, cached_weights, colour_jitter, fit, normalise, on_device, precision, resize_image, resize_nearest,
-    to_batch
+    FitOptions, as_images, cached_weights, colour_jitter, fit, normalise, on_device, precision, resize_image,
+    resize_nearest, to_batch
 )
 from monolib.progress import tqdm
 
@@ -368,7 +368,8 @@ def summarise(per_frame: list[Optional[dict]]) -> dict:
     """Mean over frames with valid pixels (median of median ratios); frames without any are skipped."""
     rows = [r for r in per_frame if r is not None]
     if not rows:
-        return {"abs_rel": float("nan"), "rmse": float("nan"), "delta1": float("nan"), "median_ratio": float("nan"), "frames": 0}
+        return {"abs_rel": float("nan"), "rmse": float("nan"), "delta1": float("nan"), "median_ratio": float("nan"),
+                "frames": 0}
     out = {k: float(np.mean([r[k] for r in rows])) for k in ("abs_rel", "rmse", "delta1")}
     out["median_ratio"] = float(np.median([r["median_ratio"] for r in rows]))
     out["frames"] = len(rows)

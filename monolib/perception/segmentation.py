@@ -247,7 +247,8 @@ def fit(model: nn.Module, spec, n_train: int, batch_loss: Callable, validate: Op
 
 _BUILDERS = {
     # backbone: (builder name, full-model weight enum, backbone weight enum)
-    "mobilenet_v3_large": ("deeplabv3_mobilenet_v3_large", "DeepLabV3_MobileNet_V3_Large_Weights", "MobileNet_V3_Large_Weights"),
+    "mobilenet_v3_large": ("deeplabv3_mobilenet_v3_large", "DeepLabV3_MobileNet_V3_Large_Weights",
+                           "MobileNet_V3_Large_Weights"),
     "resnet50": ("deeplabv3_resnet50", "DeepLabV3_ResNet50_Weights", "ResNet50_Weights"),
     "resnet101": ("deeplabv3_resnet101", "DeepLabV3_ResNet101_Weights", "ResNet101_Weights"),
 }
@@ -269,8 +270,8 @@ def cached_weights(weights) -> Path:
 class EfficientDeepLabV3(nn.Module):
     """DeepLabV3 (the paper's ASPP head, segmentation-models-pytorch) on an EfficientNet-Lite encoder (timm's
     ``tf_efficientnet_liteN``), output stride 16, 40 classes. `pretrained`: the encoder starts from the ImageNet
-    checkpoint its package ships (`monolib.perception.imagenet`). Takes ImageNet-normalised input like torchvision's DeepLabV3
-    (`imagenet.Renormalise` converts it) and returns ``{"out": logits}`` as torchvision's does."""
+    checkpoint its package ships (`monolib.perception.imagenet`). Takes ImageNet-normalised input like torchvision's
+    DeepLabV3 (`imagenet.Renormalise` converts it) and returns ``{"out": logits}`` as torchvision's does."""
 
     def __init__(self, backbone: str, pretrained: bool):
         super().__init__()

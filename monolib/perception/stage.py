@@ -419,7 +419,8 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
                     f"predicted test pixels are NaN or inf (at most {MAX_NONFINITE_SHARE:.1%} allowed); its metrics "
                     f"and graphs are not made from them. Train it again (delete that folder) or check its weights")
             old = model_dir(study, name) / "metrics.json"
-            old_ms = (io.load_cached(old, io.read_json_dict, f"test metrics of {name}") or {}).get("inference_ms_per_frame")
+            old_ms = (io.load_cached(old, io.read_json_dict, f"test metrics of {name}")
+                      or {}).get("inference_ms_per_frame")
             metrics.update(
                 train_seconds=float(history.get("train_seconds", float("nan"))),
                 inference_ms_per_frame=(1000.0 * secs / n_run) if n_run else old_ms,
@@ -428,11 +429,13 @@ def run(study: Study, progress: bool = True, only: Optional[list[str]] = None, d
             io.write_json(model_dir(study, name) / "metrics.json", metrics)
             io.write_json(predictions_dir(study, name) / "_complete.json", {"model": name, "frames": sorted(keys)})
             status[name] = "done"
-            shown = {k: round(v, 4) for k, v in metrics.items() if k in ("pixel_accuracy", "miou", "abs_rel", "rmse", "delta1", "median_ratio")}
+            shown = {k: round(v, 4) for k, v in metrics.items()
+                     if k in ("pixel_accuracy", "miou", "abs_rel", "rmse", "delta1", "median_ratio")}
             print(f"perception: {tag} {how}, predicted {n_pred} frames, test {shown}")
     table = metrics_table(study)
     csv = table.to_csv(index=False, float_format="%.6g")
-    _write_if_changed(study.data_dir / "perception" / f"metrics_{study.name}.csv", csv)  # one per study sharing runs/<base>/
+    # one per study sharing runs/<base>/
+    _write_if_changed(study.data_dir / "perception" / f"metrics_{study.name}.csv", csv)
     _write_if_changed(paths.figures_dir(study.name) / "perception.csv", csv)
     table.attrs["status"] = status
     return table

@@ -30,7 +30,7 @@ from monolib.device import device
 from monolib.params import Study
 from monolib.perception import depth as dep, imagenet, segmentation as seg, stage as perception
 from monolib.perception.manifests import STAGING, WeightsError, architecture, read_manifest  # noqa: F401 (zoo.*)
-from monolib.perception.weights import load  # noqa: F401  (re-exported: zoo.load)
+from monolib.perception.weights import load  # (re-exported: zoo.load)
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -226,8 +226,9 @@ def pilot(zoo: Study, evaluation: Study, out: Path, frames: int = 300,
                       f"# The zoo's learning curve: accuracy against CPU minutes (`make zoo-pilot`)\n\n"
                       f"{_machine()['machine']}, {zoo.perception.threads} torch threads, {_machine()['date']}: each "
                       f"network of `{_relative(zoo.path)}` from its ImageNet encoder, {frames} training frames, "
-                      f"one-cycle schedule over the epochs of each size, measured after every epoch on {test_frames} test frames "
-                      f"of `{evaluation.name}` (every {test_every}th) at their full size; minutes of training only.\n\n"
+                      f"one-cycle schedule over the epochs of each size, measured after every epoch on {test_frames} "
+                      f"test frames of `{evaluation.name}` (every {test_every}th) at their full size; "
+                      f"minutes of training only.\n\n"
                       + table.to_markdown(index=False) + "\n")
         return table
 
@@ -289,7 +290,8 @@ def write_figures(manifests: dict[str, dict], out: Path) -> None:
         lines.append(
             f"- **{name}** ({m['task']}, {m['architecture']['model']} on {m['spec']['backbone']}, from "
             f"{src.get('package', 'random weights')} {src.get('version', '')} sha256 {src.get('sha256', '-')[:12]}): "
-            f"{m['train_frames']} frames of `{m['study_file']}` at {m['spec']['train_width']}x{m['spec']['train_height']}, "
+            f"{m['train_frames']} frames of `{m['study_file']}` at "
+            f"{m['spec']['train_width']}x{m['spec']['train_height']}, "
             f"{m['epochs']} epochs (best {m['best_epoch']}) in {m['train_seconds'] / 60:.1f} min on {m['cpus']} CPUs "
             f"({m['machine']}, {m['device']}, {m['threads']} torch threads, {m['date']}); the shipped file "
             f"({m['bytes'] / 1e6:.1f} MB, float16) on the {m['evaluated_on']['test_frames']} test frames of "

@@ -17,8 +17,8 @@ difference is mean(a) - mean(b) with the paired bootstrap's 95 % interval (`stat
 protocol's `statistics.Bootstrap`); the two means and their intervals are the tables' (``intervals.csv``).
 ``above`` holds when the difference's interval lies entirely above 0, ``below`` entirely below 0, ``level`` when
 it lies within +/- the claim's ``margin`` (points: equivalent within what the claim states, not merely "the
-interval contains 0"); ``not_above`` when it does not lie entirely above 0 (level or below), ``not_below`` when it does not
-lie entirely below 0 (level or above): what a comparison whose verdict moves between level and one side from one
+interval contains 0"); ``not_above`` when it does not lie entirely above 0 (level or below), ``not_below`` when it does
+not lie entirely below 0 (level or above): what a comparison whose verdict moves between level and one side from one
 CPU to another (training is not bit for bit across CPUs) can state on every one. The sentence is a template
 without numbers: ``{a}`` and ``{b}`` become each cell's mean with its interval, ``{diff}`` the difference with its
 interval.

@@ -110,7 +110,10 @@ def fig_recall_vs_threshold(results: pd.DataFrame, path: str | Path, method: str
     ax.set_title(f"{method}: recall@{k} vs edge threshold{where} ({spread})", fontsize=9)
     ax.grid(alpha=0.3)
     handles, names = ax.get_legend_handles_labels()
-    rank = lambda name: 1 if name.endswith("(paper)") else 2 if name.endswith("(RGB only)") else 0
+
+    def rank(name):
+        return 1 if name.endswith("(paper)") else 2 if name.endswith("(RGB only)") else 0
+
     order = sorted(range(len(names)), key=lambda i: (rank(names[i]), i))
     ax.legend([handles[i] for i in order], [names[i] for i in order], fontsize=7, loc="upper left",
               bbox_to_anchor=(1.01, 1.0), frameon=False)
@@ -287,7 +290,8 @@ def fig_matches(study_name: str, rgb_of: RgbOf, path: str | Path, method: str = 
 def fig_recall_by_light(table: pd.DataFrame, path: str | Path, method: str = "gcn", k: int = 1,
                         n_boot: int = N_BOOT) -> Path:
     """Bars: recall@k of queries in bright and in dim test settings per scenario (`method` at each scenario's best
-    threshold) and per image baseline (`monolib.report.statistics.light_table`); error bars: 95 % bootstrap intervals."""
+    threshold) and per image baseline (`monolib.report.statistics.light_table`); error bars: 95 %
+    bootstrap intervals."""
     t = table[table["light"].isin(["dim", "bright"])]
     groups = list(dict.fromkeys(zip(t["method"], t["scenario"], t["threshold"])))
     fig = new_figure(figsize=(max(4.8, 1.1 * len(groups) + 2.0), 3.8))
@@ -376,7 +380,8 @@ def _group_name(m: str, sc: str, t: float) -> str:
 
 def fig_protocols(table: pd.DataFrame, path: str | Path, k: int = 1, n_boot: int = N_BOOT) -> Path:
     """Bars: recall@k of each method (graph methods per scenario, at the best ``paper`` threshold) on each
-    protocol, from the same cells (`monolib.report.statistics.protocols_table`); error bars: 95 % bootstrap intervals."""
+    protocol, from the same cells (`monolib.report.statistics.protocols_table`); error bars: 95 %
+    bootstrap intervals."""
     import matplotlib
 
     groups = list(dict.fromkeys(zip(table["method"], table["scenario"], table["threshold"])))

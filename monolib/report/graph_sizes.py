@@ -33,12 +33,12 @@ def _scenario_thresholds(study: Study) -> dict[str, list[float]]:
 def graph_sizes(study: Study) -> pd.DataFrame:
     """Nodes and edges per graph for each scenario and threshold of the study's grid: means over the test split's
     graphs and over the training split's (training + validation settings); edges = node pairs joined (the paper's
-    encoder reads each once, from the lower NYU40 id to the higher; the undirected encoders both ways); ``test_empty``: test graphs without a node; ``missing_frames``: frames of the scenario (all splits) with a
-    missing or unreadable dataset file, each an empty graph; ``dropped_pixels``: labelled pixels per frame (mean
-    over all splits) left out of the nodes for their depth (NaN, inf or <= 0), ``frames_with_dropped_pixels``: the
-    frames with any (NaN and -1 for graphs that were not built here: published graphs); ``same_graphs_as``: the smallest
-    threshold whose graphs (every split) are identical (`identical_thresholds`; NaN when none). Columns
-    `SIZE_COLUMNS`."""
+    encoder reads each once, from the lower NYU40 id to the higher; the undirected encoders both ways); ``test_empty``:
+    test graphs without a node; ``missing_frames``: frames of the scenario (all splits) with a missing or unreadable
+    dataset file, each an empty graph; ``dropped_pixels``: labelled pixels per frame (mean over all splits) left out of
+    the nodes for their depth (NaN, inf or <= 0), ``frames_with_dropped_pixels``: the frames with any (NaN and -1 for
+    graphs that were not built here: published graphs); ``same_graphs_as``: the smallest threshold whose graphs (every
+    split) are identical (`identical_thresholds`; NaN when none). Columns `SIZE_COLUMNS`."""
     rows = []
     for sc, thresholds in _scenario_thresholds(study).items():
         data = load_file(study, sc)
@@ -68,8 +68,8 @@ def graph_sizes_markdown(table: pd.DataFrame) -> str:
     """``graph_sizes.md``: the table of `graph_sizes` for a reader."""
     lines = ["**Graph sizes.** Nodes and edges per scene graph for each scenario and edge threshold: means over the "
              "test split's graphs and over the training split's (training and validation settings). An edge is a node "
-             "pair closer than the threshold (the paper's encoder reads it once, from the node of lower NYU40 id to the "
-             "higher; `ours`, `layout` and the undirected ablations both ways); 0: no edges, the encoder sees "
+             "pair closer than the threshold (the paper's encoder reads it once, from the node of lower NYU40 id "
+             "to the higher; `ours`, `layout` and the undirected ablations both ways); 0: no edges, the encoder sees "
              "the nodes only; ∞: every pair. *Same graphs as*: a smaller threshold whose graphs are identical in every "
              "frame of every split (no node pair has a length between the two): the study copies that threshold's "
              "cells, so the threshold changes nothing.", "",

@@ -338,7 +338,8 @@ def check_protocol(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: Op
     setting_of = protocol.set_index("frame")["setting"]
     q_role = rankings["query"].map(role_of)
     fail(q_role != "query", "rankings: a ranked query is not a query of the protocol")
-    fail(rankings["query"].map(setting_of) != rankings["query_setting"], "rankings: query_setting disagrees with the protocol")
+    fail(rankings["query"].map(setting_of) != rankings["query_setting"],
+         "rankings: query_setting disagrees with the protocol")
     fail(rankings["match"].astype(str).str.split("/").str[0] != rankings["match_setting"].astype(str),
          "rankings: match_setting disagrees with the match's frame key")
     fail(rankings.duplicated(["query", "rank"]), "rankings: a (query, rank) pair appears twice")
@@ -371,9 +372,11 @@ def check_protocols(rankings: pd.DataFrame, protocol: pd.DataFrame, positives: O
         names = sorted(d["setting"].astype(str).unique())
         fams = pd.Series(names).map(family).value_counts()
         if name == PAPER and families and (fams > 1).any():
-            raise ProtocolError(f"protocol {name}: settings of one family: {sorted(n for n in names if fams[family(n)] > 1)}")
+            raise ProtocolError(f"protocol {name}: settings of one family: "
+                                f"{sorted(n for n in names if fams[family(n)] > 1)}")
         if name == SIBLINGS and (fams != 2).any():
-            raise ProtocolError(f"protocol {name}: families without exactly 2 settings: {sorted(fams[fams != 2].index)}")
+            raise ProtocolError(f"protocol {name}: families without exactly 2 settings: "
+                                f"{sorted(fams[fams != 2].index)}")
         if settings is not None and name in settings and len(names) != settings[name]:
             raise ProtocolError(f"protocol {name}: {len(names)} settings, {settings[name]} expected")
     if settings is not None and set(settings) != set(out):

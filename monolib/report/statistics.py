@@ -348,7 +348,8 @@ def threshold_tests(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap) -> pd.D
                                  r.ci_hi, bool(r.significant)))
     out = pd.DataFrame(rows, columns=TEST_COLUMNS)
     out["metric_order"] = out["metric"].map(METRICS.index)
-    out = sort_rows(out, ["method", "scenario", "protocol", "metric_order", "k", "threshold"]).drop(columns="metric_order")
+    out = sort_rows(out, ["method", "scenario", "protocol", "metric_order", "k",
+                          "threshold"]).drop(columns="metric_order")
     return out
 
 
@@ -450,8 +451,8 @@ def encoder_ablation(qv: pd.DataFrame, iv: pd.DataFrame, boot: Bootstrap, study=
                     continue
                 r = ivx.loc[key_]
                 d = diffs.loc[(metric, k)] if (metric, k) in diffs.index else None
-                rows.append((m, method_description(m, study), sc, t, protocol, metric, k, float(r["mean"]), float(r["ci_lo"]),
-                             float(r["ci_hi"]), int(r["n_seeds"]),
+                rows.append((m, method_description(m, study), sc, t, protocol, metric, k, float(r["mean"]),
+                             float(r["ci_lo"]), float(r["ci_hi"]), int(r["n_seeds"]),
                              *((float(d["diff"]), float(d["ci_lo"]), float(d["ci_hi"]), bool(d["significant"]))
                                if d is not None else (np.nan, np.nan, np.nan, False))))
     return pd.DataFrame(rows, columns=ABLATION_COLUMNS)

@@ -438,7 +438,8 @@ def twin_rows(table: pd.DataFrame, axis: str, scenario_labels: Optional[Mapping[
     lines = []
     for (sc, mine, pair, theirs), g in table.groupby(["scenario", axis, "pair", f"pair_{axis}"], sort=False):
         lines += [f"*{sc}: {labels.get(sc, sc)}*, `{mine}` against {pair} in `{theirs}`:", "",
-                  f"| method | threshold (m) | {mine} | {theirs} | Δ {theirs} - {mine} |" + (" paper |" if paper else ""),
+                  f"| method | threshold (m) | {mine} | {theirs} | Δ {theirs} - {mine} |"
+                  + (" paper |" if paper else ""),
                   "|---|---|---:|---:|---:|" + ("---:|" if paper else "")]
         prev = None
         for _, r in g.iterrows():
@@ -524,7 +525,10 @@ def confusions_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[s
     protocol = _protocol_of(table) if len(table) else SIBLINGS
     head = ["method", "data", "threshold (m)", "queries", "right (%)", "sibling (%)", "other (%)",
             "sibling share of errors (%)"]
-    pct = lambda x: f"{x:.1f}" if np.isfinite(x) else "–"
+
+    def pct(x):
+        return f"{x:.1f}" if np.isfinite(x) else "–"
+
     lines = [f"**Which settings the `{protocol}` protocol confuses**, from the same cells as the protocols table "
              f"(graph methods at the threshold with the best `paper` recall@1 of their scenario). Each query's top-1 "
              f"match is *right* (a frame of its own setting), *sibling* (a frame of the other setting of its family: "

@@ -85,9 +85,9 @@ def markdown(table: pd.DataFrame, study_name: str, selection: Optional[str] = No
     """training.md of `training_table`."""
     lines = [f"**How training ended, `{study_name}`** (every trained cell; a cell copied from a smaller threshold "
              f"with identical graphs counts once; a cell copied from another scenario whose encoder reads the same "
-             f"inputs is shown in its own scenario's rows). Epochs run and the kept model's epoch: median [min, max] over "
-             f"seeds; epoch 1-2: share of seeds whose kept model is from epoch 1 or 2; recall@1 on `paper`, mean and "
-             f"seed standard deviation (%). Rows `all`: every threshold of the method and scenario (seed sd: the "
+             f"inputs is shown in its own scenario's rows). Epochs run and the kept model's epoch: median [min, max] "
+             f"over seeds; epoch 1-2: share of seeds whose kept model is from epoch 1 or 2; recall@1 on `paper`, mean "
+             f"and seed standard deviation (%). Rows `all`: every threshold of the method and scenario (seed sd: the "
              f"largest)." + (f" Selection: {selection}." if selection else ""), "",
              "| method | scenario | threshold (m) | seeds | epochs run | kept epoch | epoch 1-2 | recall@1 | seed sd | "
              "SE |", "|---|---|---|---:|---|---|---:|---:|---:|---:|"]
@@ -96,7 +96,8 @@ def markdown(table: pd.DataFrame, study_name: str, selection: Optional[str] = No
                      f"{r['epochs_run_median']:g} [{r['epochs_run_min']}, {r['epochs_run_max']}] | "
                      f"{r['best_epoch_median']:g} [{r['best_epoch_min']}, {r['best_epoch_max']}] | "
                      f"{r['kept_early']:.2f} | {r['recall@1_mean']:.1f} | "
-                     + " | ".join("–" if math.isnan(r[k]) else f"{r[k]:.1f}" for k in ("recall@1_seed_sd", "recall@1_se"))
+                     + " | ".join("–" if math.isnan(r[k]) else f"{r[k]:.1f}"
+                                  for k in ("recall@1_seed_sd", "recall@1_se"))
                      + " |")
     return "\n".join(lines + [""] + checks(table)) + "\n"
 
@@ -127,8 +128,8 @@ def checks(table: pd.DataFrame) -> list[str]:
                  + ", ".join(early) + ".")
     se = cells["recall@1_se"].dropna()
     over = cells.loc[se[se > TARGET_SE].index]
-    lines.append(f"Standard error of a cell's mean over its seeds at most {TARGET_SE:g}: {int((se <= TARGET_SE).sum())} "
-                 f"of {len(se)} cells" + ("" if over.empty else " (over: " + "; ".join(
+    lines.append(f"Standard error of a cell's mean over its seeds at most {TARGET_SE:g}: "
+                 f"{int((se <= TARGET_SE).sum())} of {len(se)} cells" + ("" if over.empty else " (over: " + "; ".join(
                      f"`{r['method']}` {r['scenario']} {_t(r['threshold'])} m, {r['recall@1_se']:.1f} with "
                      f"{r['seeds']} seeds, {seeds_needed(r['recall@1_seed_sd'])} at its spread"
                      for _, r in over.iterrows()) + "; more seeds for a cell: the study key `more_seeds`)") + ".")
@@ -152,7 +153,8 @@ def fig_curves(curves: pd.DataFrame, path: Path, kept: dict) -> Optional[Path]:
     for ax, (m, t, s) in zip(axes[0], runs):
         run = curves[(curves["method"] == m) & (curves["threshold"] == t) & (curves["seed"] == s)].sort_values("epoch")
         for col, label, scale in (("val_recall@1", "val recall@1", 100), ("val_map", "val mAP", 100),
-                                  ("inner_recall@1", "inner test recall@1", 100), ("test_recall@1", "test recall@1", 1)):
+                                  ("inner_recall@1", "inner test recall@1", 100),
+                                  ("test_recall@1", "test recall@1", 1)):
             if col in run and run[col].notna().any():  # (the history's shares as %, as the test metric is)
                 ax.plot(run["epoch"], scale * run[col], label=label, lw=1.2)
         if (m, t, s) in kept:

@@ -3,8 +3,8 @@ and the figures (`write_report`; what ``notebooks/report.ipynb`` and ``monolib s
 
 The work is split by concern:
 
-- `monolib.report.results`: reading the cells (``cell.json``, ``rankings.csv``, ``protocol.csv``), recomputing the metrics
-  from the rankings, checking the protocol, per-query values, the paper's published numbers;
+- `monolib.report.results`: reading the cells (``cell.json``, ``rankings.csv``, ``protocol.csv``), recomputing the
+  metrics from the rankings, checking the protocol, per-query values, the paper's published numbers;
 - `monolib.report.statistics`: mean and std over seeds, the hierarchical bootstrap (intervals), paired tests (thresholds
   against the best), and the controlled comparisons (encoder ablation, dim vs bright, depth scale, protocols);
 - `monolib.report.tables`: Table 1 and 2 in md, csv and TeX, the ablation and protocols tables, number formats;
@@ -57,10 +57,10 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
 
     - ``results.csv``: one row per (method, scenario, threshold, seed, protocol, metric, k) number;
     - ``intervals.csv``: per (method, scenario, threshold, protocol, metric, k) the mean and its 95 % bootstrap
-      interval over test settings, queries and seeds (`monolib.report.statistics.intervals`, ``n_boot`` resamples, numpy seed 0, one
-      resample per protocol);
-    - ``threshold_tests.csv``: each threshold against its scenario's best (`monolib.report.statistics.threshold_tests`), per
-      protocol;
+      interval over test settings, queries and seeds (`monolib.report.statistics.intervals`, ``n_boot`` resamples, numpy
+      seed 0, one resample per protocol);
+    - ``threshold_tests.csv``: each threshold against its scenario's best (`monolib.report.statistics.threshold_tests`),
+      per protocol;
     - Table 1 and 2 (md, csv, tex) of the ``paper`` protocol with the intervals and a dagger on thresholds
       significantly below the best, and the same tables of the ``siblings`` protocol (``table1_recall_siblings.*``,
       ``table2_precision_siblings.*``) when the cells have it; scenarios with ``in_tables: false`` are left out of
@@ -92,8 +92,8 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
     `study_name` is a name or a loaded `monolib.params.Study`; `study` (default: ``params/<name>.yaml`` when it
     loads) gives variant descriptions, scenario information and the dataset folder. Labels default to the
     ``scenario_label`` the cells recorded. Returns ``{"results": path, "intervals": path, "table1_md": path, ...}``.
-    Raises `monolib.report.results.CellMismatchError` when a cell's ``cell.json`` metrics (the tables' means) are not what
-    its ``rankings.csv`` gives (the intervals' per-query values).
+    Raises `monolib.report.results.CellMismatchError` when a cell's ``cell.json`` metrics (the tables' means) are not
+    what its ``rankings.csv`` gives (the intervals' per-query values).
     """
     if not isinstance(study_name, (str, Path)):
         study, study_name = study_name, study_name.name

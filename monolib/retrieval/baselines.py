@@ -250,11 +250,11 @@ def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torc
                   on_epoch=None) -> CNNResult:
     """The GCN's training loop (`monolib.retrieval.gcn.train`) for an encoder of images (or of their features):
     Adam, triplet margin loss, fresh per-setting triplets each epoch, the model kept and the stop by `spec`'s
-    selection (`monolib.retrieval.gcn.EarlyStopping`). `make_model()` builds the encoder (after the seeding); `batch_input(x, gen)` turns a
-    batch of `train_x` rows (anchors, positives, negatives) into the model's input on the CPU, augmented with the
-    generator `gen`; `embed(model, val_x)` gives the validation embeddings. `on_epoch(model)`, when given, adds
-    columns to each epoch's history row, as in `monolib.retrieval.gcn.train` (it must not draw from the seed's
-    random streams)."""
+    selection (`monolib.retrieval.gcn.EarlyStopping`). `make_model()` builds the encoder (after the seeding);
+    `batch_input(x, gen)` turns a batch of `train_x` rows (anchors, positives, negatives) into the model's input on the
+    CPU, augmented with the generator `gen`; `embed(model, val_x)` gives the validation embeddings. `on_epoch(model)`,
+    when given, adds columns to each epoch's history row, as in `monolib.retrieval.gcn.train` (it must not draw from the
+    seed's random streams)."""
     torch.set_num_threads(threads)
     gen = seed_everything(int(seed), deterministic)
     rng = np.random.default_rng(seed)

@@ -3,8 +3,8 @@
 `notebooks/ablation_cell.ipynb` calls `run_cell`; so do the tests. A cell writes into its folder:
 `cell.json` (written last: its presence means the cell is complete; ``metrics`` per protocol), `rankings.csv` (top
 10 per query and protocol), `protocol.csv` (which test frames were queries / positives in each protocol), both with
-a leading ``protocol`` column (``paper``, ``siblings``: `monolib.retrieval.evaluate.evaluate_protocols`, one trained encoder
-evaluated on both), `embeddings.npy` (every test frame) and, for trained methods,
+a leading ``protocol`` column (``paper``, ``siblings``: `monolib.retrieval.evaluate.evaluate_protocols`, one trained
+encoder evaluated on both), `embeddings.npy` (every test frame) and, for trained methods,
 `history.csv` and `model.pt` (the encoder's weights, used by `monolib index`). A cell whose graphs equal those of
 a smaller threshold (`monolib.study.runner.same_graphs`) is a copy of that cell's files, and its `cell.json` says so
 (`same_graphs_as`).
@@ -38,7 +38,8 @@ log = logging.getLogger(__name__)
 IMAGE_SCENARIO = "rgb"  # image methods use neither the scenario's sources nor the threshold
 
 
-def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed: int, out_dir: Optional[str] = None) -> Path:
+def cell_folder(study: Study, method: str, scenario: str, threshold: float, seed: int,
+                out_dir: Optional[str] = None) -> Path:
     return Path(out_dir) if out_dir else paths.cell_dir(study.name, method, scenario, threshold, seed, study.fold)
 
 
@@ -71,8 +72,8 @@ def cell_key(study: Study, method: str, scenario: str, threshold: float, seed: i
     """Cache key of a cell: its inputs' key (`inputs_key`, passed on by a caller that holds it), what it
     computes (a graph method's encoder settings, whatever its name; an image method's name), threshold, seed, the
     protocol's draw and the depth of its rankings (not the k of the metrics: any k up to that depth is recomputed
-    from the rankings, `refresh_metrics`), the fold (folds by volume), the torch threads, device, deterministic mode, and the version of the
-    cells' code and libraries."""
+    from the rankings, `refresh_metrics`), the fold (folds by volume), the torch threads, device, deterministic mode,
+    and the version of the cells' code and libraries."""
     graph_method = methods.kind(method, study) == "graph"
     inputs = inputs if inputs is not None else inputs_key(study, method, scenario)
     pr = study.protocol

@@ -66,12 +66,14 @@ def draw_protocol(frames: list[str], settings, protocol: Protocol, seed: int, n_
     return Draw(list(frames), settings, is_query)
 
 
-def rank(embeddings: torch.Tensor | np.ndarray, draw: Draw, k: int = 10, use_faiss: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rank(embeddings: torch.Tensor | np.ndarray, draw: Draw, k: int = 10,
+         use_faiss: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Top-k candidates of every query: (query indices (Q,), match indices (Q, k), distances (Q, k)).
 
     `torch.cdist` + `topk` over all queries at once; forbidden candidates get distance +inf.
     """
-    emb = torch.as_tensor(np.asarray(embeddings, dtype=np.float32)) if not torch.is_tensor(embeddings) else embeddings.float()
+    emb = (torch.as_tensor(np.asarray(embeddings, dtype=np.float32)) if not torch.is_tensor(embeddings)
+           else embeddings.float())
     q = np.flatnonzero(draw.is_query)
     codes = np.unique(draw.settings, return_inverse=True)[1]
     d = torch.cdist(emb[torch.as_tensor(q)], emb)
@@ -121,9 +123,11 @@ class ProtocolResult:
         return t
 
 
-def evaluate_protocols(embeddings, frames: list[str], settings, protocol: Protocol, seed: int) -> dict[str, ProtocolResult]:
-    """Every protocol of the study (``paper``; ``siblings`` when `protocol.siblings` > 0) on the embeddings of the test frames (the union of the
-    protocols' settings): each on its own settings' frames, with its own draw (`protocol_seed`)."""
+def evaluate_protocols(embeddings, frames: list[str], settings, protocol: Protocol,
+                       seed: int) -> dict[str, ProtocolResult]:
+    """Every protocol of the study (``paper``; ``siblings`` when `protocol.siblings` > 0) on the embeddings of the test
+    frames (the union of the protocols' settings): each on its own settings' frames, with its own
+    draw (`protocol_seed`)."""
     emb = np.asarray(embeddings.numpy() if torch.is_tensor(embeddings) else embeddings, dtype=np.float32)
     frames = list(frames)
     settings = np.asarray(settings).astype(str)

@@ -42,7 +42,8 @@ def ragged_arange(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
     """The concatenation of arange(start, start + count) for each pair, without a Python loop."""
     total = int(counts.sum())
     begin = torch.cumsum(counts, 0) - counts  # where each run begins in the output
-    return torch.repeat_interleave(starts - begin, counts, output_size=total) + torch.arange(total, device=starts.device)
+    return (torch.repeat_interleave(starts - begin, counts, output_size=total)
+            + torch.arange(total, device=starts.device))
 
 
 @dataclass
@@ -349,7 +350,8 @@ def family_batches(settings: np.ndarray, batch_size: int, rng: np.random.Generat
     return batches
 
 
-def batch_hard_batches(settings: np.ndarray, batch_size: int, rng: np.random.Generator, per_setting: int = 4) -> list[np.ndarray]:
+def batch_hard_batches(settings: np.ndarray, batch_size: int, rng: np.random.Generator,
+                       per_setting: int = 4) -> list[np.ndarray]:
     """Batches of `per_setting` graphs from each of batch_size // per_setting random settings (P x K sampling),
     covering about every graph once per epoch."""
     settings = np.asarray(settings)

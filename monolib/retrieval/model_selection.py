@@ -3,15 +3,15 @@
 An inner split of a study's training settings: `INNER_FAMILIES` families (both settings of each, so that no sibling
 of an inner test setting is trained on) are held out as an inner test; the validation settings stay the study's;
 the rest train. A study of folds by volume (published graphs) holds out as many volumes of fold 0's training side as
-that fold tests (`inner_families`), and its image encoders are not compared (there are no frames). Each encoder of `CONFIGS` (the graph encoders on the scene graphs of `SCENARIO`, the learned image
-encoders on the same settings' frames) trains all the epochs of each `TRAININGS` entry that trains it, once per
-seed, and after every epoch its history records what a rule can read (validation leave-one-out recall@1, mean
-average precision, loss) and the inner test's recall@1 under a protocol built like the paper's
-(`test_like_recall`: queries against their own setting's positives and every frame of the other settings). Each
-rule of `RULES` is then replayed on those histories (`EarlyStopping.advance`): the epoch it keeps, the epochs it
-runs, and the inner test recall@1 of the kept model. No rule reads the study's test split; the runs of the first
-`TEST_CURVE_SEEDS` seeds of each encoder's own training record its recall@1 per epoch beside, for the figure of
-training.md alone.
+that fold tests (`inner_families`), and its image encoders are not compared (there are no frames). Each encoder of
+`CONFIGS` (the graph encoders on the scene graphs of `SCENARIO`, the learned image encoders on the same settings'
+frames) trains all the epochs of each `TRAININGS` entry that trains it, once per seed, and after every epoch its history
+records what a rule can read (validation leave-one-out recall@1, mean average precision, loss) and the inner test's
+recall@1 under a protocol built like the paper's (`test_like_recall`: queries against their own setting's positives and
+every frame of the other settings). Each rule of `RULES` is then replayed on those histories (`EarlyStopping.advance`):
+the epoch it keeps, the epochs it runs, and the inner test recall@1 of the kept model. No rule reads the study's test
+split; the runs of the first `TEST_CURVE_SEEDS` seeds of each encoder's own training record its recall@1 per epoch
+beside, for the figure of training.md alone.
 
 Each run is kept in ``runs/<study>/selection/`` under a key of what it computes (`run_key`), so that a stopped
 comparison resumes where it was. `write(study, out)` writes ``selection.md`` (the rules side by side, per group of
@@ -269,7 +269,8 @@ def curves(study: Study, configs=CONFIGS, seeds: Optional[list[int]] = None, wor
     shared = dict(study=study, split=split, test=graphs["test"], families=families, inputs=inputs)
     if any(group(j[0]) != GRAPH for j in jobs):
         sel = selection.select_frames(study, dataset.open_dataset(study), study.gcn.val_settings)
-        shared.update(frames=inner_split({"train": sel.train, "val": sel.val}, families, study.seed), test_frames=sel.test)
+        shared.update(frames=inner_split({"train": sel.train, "val": sel.val}, families, study.seed),
+                      test_frames=sel.test)
         if any(j[0] in methods.IMAGENET for j in jobs):
             features.load(study, sel.test)  # the features file read once, here, for every forked worker
     _SHARED.update(shared)  # (forked workers inherit the graphs and frames, unpickled)
@@ -433,7 +434,8 @@ def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, cpu_sec
                           + ", ".join("graph encoders" if x == GRAPH else f"`{x}`" for x in t.trains if x in groups)
                           + ")" for t in TRAININGS if groups & set(t.trains))
     lines = [f"**Model selection, measured on the training split of `{study_name}`** (`monolib bench --selection`, "
-             f"{cpu_seconds / 60:.0f} CPU-minutes of training, one thread a run). {held}, queried as the paper's protocol queries its test "
+             f"{cpu_seconds / 60:.0f} CPU-minutes of training, one thread a run). {held}, queried as the paper's "
+             f"protocol queries its test "
              f"({INNER_POSITIVES} positives per setting, the other frames query, every frame of the other settings a "
              f"candidate); the study's validation settings as they are; each encoder trained all its epochs once per "
              f"seed and training ({trainings}), each rule replayed on the recorded epochs of its training (rules "

@@ -41,8 +41,8 @@ GEM_EPS = 1e-6
 VLAD_WORDS = 32
 VLAD_SAMPLE = 20_000      # local descriptors the vocabulary is learnt from (seeded subsample of the training split)
 VLAD_ITERS = 20
-VLAD_WHITEN = None        # PCA-whitened dimensions (None: VLAD as it is; whitening lost 4-14 points of recall@1 on quick,
-                          # learnt from its 960 training vectors: `monolib bench --imagenet-choices`)
+VLAD_WHITEN = None        # PCA-whitened dimensions (None: VLAD as it is; whitening lost 4-14 points of recall@1
+                          # on quick, learnt from its 960 training vectors: `monolib bench --imagenet-choices`)
 # The fine-tuned encoder's output: the GeM vector L2-normalised, no projection, so that training starts from the
 # off-the-shelf `imagenet_gem` and the pretrained head is fine-tuned rather than fed to a new random layer.
 TRIPLET_OUT = None

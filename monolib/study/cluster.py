@@ -192,7 +192,8 @@ def connect(scheduler: str, study: Study, timeout: Optional[float] = None):
             problems.append(f"{address}: cannot see {token.parent} (the workers need the runs folder of this machine "
                             f"at the same path: a shared file system)")
         if f["study_sha"] != sha:
-            problems.append(f"{address}: {'has another' if f['study_sha'] else 'cannot read the'} study file {study.path}")
+            problems.append(f"{address}: {'has another' if f['study_sha'] else 'cannot read the'} study file "
+                            f"{study.path}")
         diff = differences(mine, f["fingerprint"]) if f["fingerprint"] is not None else []
         if diff:
             problems.append(f"{address}: computes cells otherwise: {'; '.join(diff)} (install this project's version "

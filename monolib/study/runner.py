@@ -23,9 +23,9 @@ from monolib.perception.images import FrameRgb
 from monolib.progress import tqdm
 from monolib.report import graph_sizes, readme, viz
 from monolib.retrieval import gcn
-from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete, refresh_metrics,
-                                    run_cell, scenario_fields)
-from monolib.retrieval.grid import CellSpec, grid  # noqa: F401  (the grid: monolib.retrieval.grid; re-exported)
+from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete,
+                                    refresh_metrics, run_cell, scenario_fields)
+from monolib.retrieval.grid import CellSpec, grid  # (the grid: monolib.retrieval.grid; re-exported)
 from monolib.study import cluster, kernels
 
 log = logging.getLogger(__name__)
@@ -33,7 +33,8 @@ CELL_NOTEBOOK = paths.NOTEBOOKS / "ablation_cell.ipynb"
 REPORT_NOTEBOOK = paths.NOTEBOOKS / "report.ipynb"
 
 
-def same_graphs(study: Study, cells: list[CellSpec], scenario_keys: dict[str, str] | None = None) -> dict[str, CellSpec]:
+def same_graphs(study: Study, cells: list[CellSpec],
+                scenario_keys: dict[str, str] | None = None) -> dict[str, CellSpec]:
     """{cell name: source cell} for the graph cells that are the same computation as another cell of the same
     method, seed and fold (same inputs, encoder and seed), so that the runner copies the source's results:
 
@@ -135,7 +136,8 @@ def check_notebook_parameters(notebook: Path, names: set[str]) -> None:
     declared = set(papermill.inspect_notebook(str(notebook)))
     missing = sorted(names - declared)
     if missing:
-        raise StudyError(f"{notebook}: no parameter named {', '.join(missing)} (declared: {', '.join(sorted(declared))})")
+        raise StudyError(f"{notebook}: no parameter named {', '.join(missing)} "
+                         f"(declared: {', '.join(sorted(declared))})")
 
 
 class NotebookFailed(RuntimeError):
@@ -323,8 +325,8 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
              scheduler: str | None = None) -> dict:
     """Run every cell that has no results yet through papermill: in `jobs` local worker processes, or as tasks of
     the Dask scheduler at `scheduler` (`monolib.study.cluster`; its workers share the runs folder). `in_process`:
-    `monolib.retrieval.cell.run_cell` one cell after the other in this process, no kernel per cell: what `prepare` does for
-    a notebook; the same function computes the same files. With folds by volume every fold's cells are in the grid
+    `monolib.retrieval.cell.run_cell` one cell after the other in this process, no kernel per cell: what `prepare` does
+    for a notebook; the same function computes the same files. With folds by volume every fold's cells are in the grid
     (`monolib.retrieval.grid.grid`), each in its own folder."""
 
     def folder(c: CellSpec) -> Path:

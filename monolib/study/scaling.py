@@ -4,8 +4,8 @@
 dataset, perception and graphs, on three engines: the local path (the study's `jobs` worker processes), a local Dask
 cluster of 1 worker and one of 2 workers (`distributed.LocalCluster`, one single-threaded worker process each, as
 `dask worker --nthreads 1` starts them); each engine twice, side by side in one run: with a kernel per cell
-(``MONOLIB_KERNELS=cold``) and with one warm kernel per worker (`monolib.study.kernels`, the default). Each run gives cells
-per minute; every cell's wall time (the papermill notebook, kernel start included) is set against the compute time
+(``MONOLIB_KERNELS=cold``) and with one warm kernel per worker (`monolib.study.kernels`, the default). Each run gives
+cells per minute; every cell's wall time (the papermill notebook, kernel start included) is set against the compute time
 its `cell.json` records (`timings`: graphs, train, embed, retrieval), which gives the notebook overhead per cell.
 
 `project` turns those costs into the hours of the paper study (`params/paper.yaml`: ~12,000 frames, 5 thresholds x
@@ -135,14 +135,16 @@ def project(measured: dict, paper: str = "paper", variants_from: str = "ablation
     counts = {}
     for label, s in (("paper", study), ("paper + encoder variants", with_variants)):
         counts[label] = sum(methods.kind(c.method, s) == "graph" for c in runner.grid(s))
-    hours = {label: {str(w): round(math.ceil(n / w) * cell_s / 3600, 2) for w in WORKERS} for label, n in counts.items()}
+    hours = {label: {str(w): round(math.ceil(n / w) * cell_s / 3600, 2) for w in WORKERS}
+             for label, n in counts.items()}
     return {"train_s_per_graph_epoch": round(rate, 6), "overhead_s_per_cell": round(overhead, 1),
             "overhead_s_per_cell_by_kernels": overheads,
             "paper_train_graphs": train_graphs,
             "paper_epochs": study.gcn.epochs, "paper_cell_minutes": round(cell_s / 60, 1),
             "graph_cells": counts, "hours": hours, "workers": list(WORKERS),
             "nodes_per_graph": {"measured": measured["training"]["nodes_per_graph"],
-                                "real_hypersim_train": read_reference()["real Hypersim, train"]["nodes per graph, mean"]}}
+                                "real_hypersim_train":
+                                    read_reference()["real Hypersim, train"]["nodes per graph, mean"]}}
 
 
 def markdown(record: dict) -> str:
@@ -150,20 +152,23 @@ def markdown(record: dict) -> str:
     p = record["projection"]
     lines = [f"**The {record['study']} grid on each engine** ({record['machine']}, {record['cpus']} cores, "
              f"{record['date']}; {record['threads_per_cell']} torch threads per cell; `monolib bench --grid`)", "",
-             "| engine | kernels | workers | cells computed (copied) | seconds | cells per minute | notebook overhead per cell (s, median) |",
+             "| engine | kernels | workers | cells computed (copied) | seconds | cells per minute | "
+             "notebook overhead per cell (s, median) |",
              "|---|---|---:|---:|---:|---:|---:|"]
     for name, e in record["engines"].items():
         label = ("local process pool (no `--scheduler`)" if name.startswith("local") else
                  f"local Dask cluster (`--scheduler`), started in {e.get('cluster_start_s', 0):.0f} s")
         kernels = {"cold": "a kernel per cell", "warm": "one warm kernel per worker"}[e.get("kernels", "cold")]
-        over = float(np.median([c["wall_s"] - c["compute_s"] for c in e["per_cell"]])) if e["per_cell"] else float("nan")
+        over = (float(np.median([c["wall_s"] - c["compute_s"] for c in e["per_cell"]])) if e["per_cell"]
+                else float("nan"))
         lines.append(f"| {label} | {kernels} | {e['workers']} | {e['computed']} ({e['cells'] - e['computed']}) | "
                      f"{e['seconds']:.0f} | {e['cells_per_minute']:.2f} | {over:.1f} |")
     t = record["training"]
     lines += ["", f"**The paper study projected** from these runs and one timed training: "
               f"{p['overhead_s_per_cell']:.1f} s of notebook overhead per cell in warm kernels (median over the "
               f"warm cell runs of their wall time minus the compute their `cell.json` records; "
-              f"{p.get('overhead_s_per_cell_by_kernels', {}).get('cold', float('nan')):.1f} s with a kernel per cell), and {1000 * p['train_s_per_graph_epoch']:.2f} ms of GCN training per graph "
+              f"{p.get('overhead_s_per_cell_by_kernels', {}).get('cold', float('nan')):.1f} s with a kernel per cell), "
+              f"and {1000 * p['train_s_per_graph_epoch']:.2f} ms of GCN training per graph "
               f"and epoch (`gcn.train` with the paper's encoder settings, batch {t['batch_size']}, {t['threads']} "
               f"threads: {t['graphs']} graphs x {t['epochs']} epochs in {t['seconds']:.0f} s; the graphs have "
               f"{p['nodes_per_graph']['measured']:.1f} nodes on average, real Hypersim's "
@@ -173,7 +178,8 @@ def markdown(record: dict) -> str:
              "| study | GCN cells | " + " | ".join(f"{w} worker{'s' * (w > 1)} (h)" for w in p["workers"]) + " |",
              "|---|---:|" + "---:|" * len(p["workers"])]
     for label, hours in p["hours"].items():
-        lines.append(f"| {label} | {p['graph_cells'][label]} | " + " | ".join(f"{h:.1f}" for h in hours.values()) + " |")
+        lines.append(f"| {label} | {p['graph_cells'][label]} | "
+                     + " | ".join(f"{h:.1f}" for h in hours.values()) + " |")
     return "\n".join(lines) + "\n"
 
 

@@ -70,7 +70,8 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int,
     As Hypersim's: each scene starts at a viewpoint an artist would choose (standing height, 1.5-1.7 m, near the
     edge of the free floor, looking across the room towards its far side: the best of 12 such views by
     `view_score`), then takes random-walk steps: the camera up to 1.5 m horizontally and 0.25 m vertically, its
-    look-at point up to 3 m, one of 8 candidates drawn in proportion to its `view_score` each time (pitch within -30..+12 degrees)."""
+    look-at point up to 3 m, one of 8 candidates drawn in proportion to its `view_score` each time (pitch within
+    -30..+12 degrees)."""
     rng = np.random.default_rng([seed, 32452843, setting_index])
     n_scenes = 1 if n_frames < 12 else int(rng.integers(2, 4))  # several trajectories, as in Hypersim
     counts = [n_frames // n_scenes + (1 if k < n_frames % n_scenes else 0) for k in range(n_scenes)]
@@ -92,7 +93,8 @@ def make_trajectories(lay: Layout, n_frames: int, seed: int, setting_index: int,
     def pose(eye, look):
         reach = max(float(exact.norm(look[:2] - eye[:2])), 0.5)
         look = look.copy()
-        look[2] = eye[2] + np.clip(look[2] - eye[2], reach * math.tan(math.radians(-30)), reach * math.tan(math.radians(12)))
+        look[2] = eye[2] + np.clip(look[2] - eye[2], reach * math.tan(math.radians(-30)),
+                                   reach * math.tan(math.radians(12)))
         return look, look_rotation(eye, look)
 
     scenes = []

@@ -218,8 +218,8 @@ def render_dataset(study, out_dir, progress: bool = True) -> Path:
              and (p / "_detail" / "monolib_synth_setting.json").is_file()]
     if stale:  # settings of another study file rendered here (a larger one of the same name): kept, and left out
         # of this dataset by its split file (metadata_images_split_scene_v1.csv lists this study's settings only)
-        print(f"monolib.data.synth: {len(stale)} synthetic settings in {out_dir} are not in this study (kept; not read)",
-              flush=True)
+        print(f"monolib.data.synth: {len(stale)} synthetic settings in {out_dir} are not in this study "
+              "(kept; not read)", flush=True)
     infos: dict[str, dict] = {}
     todo = []
     for s in settings:
@@ -257,7 +257,7 @@ def render_dataset(study, out_dir, progress: bool = True) -> Path:
 
 def _init_worker():
     try:
-        import threadpoolctl  # noqa: F401
+        import threadpoolctl
 
         threadpoolctl.threadpool_limits(1)
     except Exception:
@@ -271,7 +271,8 @@ def _write_root(out_dir: Path, study, settings: list, infos: dict, W: int, H: in
         for cname, n in zip(info["scenes"], info["frames_per_scene"]):
             for i in range(n):
                 split_rows.append([s["name"], cname, i, "True", "", s["split"]])
-            traj_rows.append([f"{s['name']}_{cname}", "", "", "", "", "", "", s["scene_type"], "monolib.data.synth", ""])
+            traj_rows.append([f"{s['name']}_{cname}", "", "", "", "", "", "", s["scene_type"], "monolib.data.synth",
+                              ""])
         row = {c: "" for c in CAMERA_COLUMNS}
         M, P = _camera_M(s, W, H), _camera_proj(s, W, H)
         row.update({"scene_name": s["name"], "settings_output_img_height": repr(float(H)),
@@ -291,8 +292,8 @@ def _write_root(out_dir: Path, study, settings: list, infos: dict, W: int, H: in
     ds = study.dataset
     meta = {"generator": "monolib.data.synth", "version": FORMAT_VERSION, "seed": int(study.seed),
             "dataset": {k: getattr(ds, k) for k in ("width", "height", "train_settings", "test_settings",
-                                                    "test_siblings", "family_size", "frames_per_setting", "train_frames_per_setting",
-                                                    "dim_fraction", "tilt_shift_settings")},
+                                                    "test_siblings", "family_size", "frames_per_setting",
+                                                    "train_frames_per_setting", "dim_fraction", "tilt_shift_settings")},
             "settings": [{k: infos[s["name"]].get(k) for k in
                           ("name", "index", "family", "member", "room_type", "scene_type", "split", "dim",
                            "tilt_shift", "meters_per_asset_unit", "frames", "scenes", "frames_per_scene", "classes",
@@ -314,7 +315,8 @@ def benchmark(width: int = 256, height: int = 192, frames: int = 20, seed: int =
         total = time.perf_counter() - t0
     n = timing.get("frames", 0)
     res = {"width": width, "height": height, "frames": n, "total_s": total, "build_s": timing.get("build", 0.0),
-           "cast_ms_per_frame": 1000 * timing.get("cast", 0.0) / n, "shade_ms_per_frame": 1000 * timing.get("shade", 0.0) / n,
+           "cast_ms_per_frame": 1000 * timing.get("cast", 0.0) / n,
+           "shade_ms_per_frame": 1000 * timing.get("shade", 0.0) / n,
            "write_ms_per_frame": 1000 * timing.get("write", 0.0) / n, "fps": n / total}
     print(f"monolib.data.synth benchmark {width}x{height}, {n} frames: {res['fps']:.2f} frames/s overall; per frame: "
           f"cast {res['cast_ms_per_frame']:.1f} ms, shade (+shadows) {res['shade_ms_per_frame']:.1f} ms, "

@@ -63,7 +63,8 @@ class Item:
 # ---- furniture builders: local frame, footprint centred at the origin, front towards +y ----------------------
 
 def _legs(w, d, h, t, inset=0.03):
-    return [_bx(sx * (w / 2 - inset - t / 2), sy * (d / 2 - inset - t / 2), 0, t, t, h) for sx in (-1, 1) for sy in (-1, 1)]
+    return [_bx(sx * (w / 2 - inset - t / 2), sy * (d / 2 - inset - t / 2), 0, t, t, h)
+            for sx in (-1, 1) for sy in (-1, 1)]
 
 
 def b_table(dim, mats, sem="table"):
@@ -101,7 +102,8 @@ def b_sofa(dim, mats):
              (_bx(0, 0, 0, w - 0.1, d - 0.1, 0.08), "wood")]
     objs = [Obj(ID["sofa"], parts)]
     for sx in (-1, 1):
-        objs.append(Obj(ID["pillow"], [(_bx(sx * (w / 2 - arm - 0.3), -d / 2 + 0.3, 0.43, 0.42, 0.14, 0.38), "pillow")]))
+        objs.append(Obj(ID["pillow"], [(_bx(sx * (w / 2 - arm - 0.3), -d / 2 + 0.3, 0.43, 0.42, 0.14, 0.38),
+                                        "pillow")]))
     return objs
 
 
@@ -124,7 +126,8 @@ def b_boxlike(sem, mat, handles=True):
         if handles:
             nd = max(1, int(h / 0.3))
             for k in range(nd):
-                parts.append((_bx(0, d / 2 + 0.005, (k + 0.5) * h / nd - 0.01, min(0.2, w * 0.4), 0.012, 0.02), "metal"))
+                parts.append((_bx(0, d / 2 + 0.005, (k + 0.5) * h / nd - 0.01, min(0.2, w * 0.4), 0.012, 0.02),
+                              "metal"))
         return [Obj(ID[sem], parts)]
     return build
 
@@ -150,7 +153,8 @@ def b_counter(dim, mats):
     w, d, h = dim
     objs = [Obj(ID["cabinet"], [(_bx(0, -0.02, 0.08, w, d - 0.04, h - 0.12), "wood2"),
                                 (_bx(0, -0.05, 0, w - 0.04, d - 0.1, 0.08), "metal")]
-                + [(_bx(-w / 2 + (k + 0.5) * w / max(1, int(w / 0.5)), d / 2 - 0.03, h - 0.2, 0.12, 0.015, 0.02), "metal")
+                + [(_bx(-w / 2 + (k + 0.5) * w / max(1, int(w / 0.5)), d / 2 - 0.03, h - 0.2, 0.12, 0.015, 0.02),
+                    "metal")
                    for k in range(max(1, int(w / 0.5)))]),
             Obj(ID["counter"], [(_bx(0, 0, h - 0.04, w + 0.02, d, 0.04), "stone")])]
     return objs
@@ -174,7 +178,8 @@ def b_vanity(dim, mats):
 
 def b_toilet(dim, mats):
     w, d, h = dim
-    return [Obj(ID["toilet"], [(_cyl(0, 0.06, 0, 0.16, 0.38), "white"), (_bx(0, 0.08, 0.38, w * 0.9, d * 0.6, 0.04), "white"),
+    return [Obj(ID["toilet"], [(_cyl(0, 0.06, 0, 0.16, 0.38), "white"),
+                               (_bx(0, 0.08, 0.38, w * 0.9, d * 0.6, 0.04), "white"),
                                (_bx(0, -d / 2 + 0.1, 0.38, w, 0.2, 0.4), "white")])]
 
 
@@ -264,8 +269,10 @@ def b_side_table(dim, mats):
 
 def b_lounge_chair(dim, mats):
     w, d, h = dim
-    parts = [(_bx(0, 0.03, 0.1, w - 0.1, d - 0.1, 0.32), "fabric2"), (_bx(0, -d / 2 + 0.08, 0.1, w, 0.16, h - 0.1), "fabric2"),
-             (_bx(-w / 2 + 0.05, 0.03, 0.1, 0.1, d - 0.1, 0.52), "fabric2"), (_bx(w / 2 - 0.05, 0.03, 0.1, 0.1, d - 0.1, 0.52), "fabric2")]
+    parts = [(_bx(0, 0.03, 0.1, w - 0.1, d - 0.1, 0.32), "fabric2"),
+             (_bx(0, -d / 2 + 0.08, 0.1, w, 0.16, h - 0.1), "fabric2"),
+             (_bx(-w / 2 + 0.05, 0.03, 0.1, 0.1, d - 0.1, 0.52), "fabric2"),
+             (_bx(w / 2 - 0.05, 0.03, 0.1, 0.1, d - 0.1, 0.52), "fabric2")]
     parts += [(leg, "wood") for leg in _legs(w, d, 0.1, 0.04, 0.04)]
     return [Obj(ID["chair"], parts)]
 
@@ -283,7 +290,8 @@ def b_work_desk(dim, mats):
 
 def w_picture(dim, mats, key="picture0"):
     w, d, h = dim
-    return [Obj(ID["picture"], [(_bx(0, 0.015, 0, w + 0.06, 0.03, h + 0.06), "wood2"), (_bx(0, 0.035, 0.03, w, 0.01, h), key)])]
+    return [Obj(ID["picture"], [(_bx(0, 0.015, 0, w + 0.06, 0.03, h + 0.06), "wood2"),
+                                (_bx(0, 0.035, 0.03, w, 0.01, h), key)])]
 
 
 def w_simple(sem, mat, thick=0.02):

@@ -144,7 +144,8 @@ def _room(add_obj, rng: np.random.Generator, fam: Family, W: float, D: float, H:
                 r = rng.uniform()
                 if r < 0.1:  # blinds: slats over the upper part
                     zb = rng.uniform((z0 + z1) / 2, z1)
-                    slats = [(_box((a, 0.03, z), (b, 0.05, z + 0.035)), "frame") for z in np.arange(zb, z1 - 0.03, 0.05)]
+                    slats = [(_box((a, 0.03, z), (b, 0.05, z + 0.035)), "frame")
+                             for z in np.arange(zb, z1 - 0.03, 0.05)]
                     if slats:
                         add_obj(ID["blinds"], slats, T, "blinds")
                 elif r < 0.3:  # curtains on both sides

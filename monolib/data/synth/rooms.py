@@ -35,9 +35,10 @@ ROOMS = {
                     ("bookshelf", 1, 1, 0.6), ("picture", 1, 3, 0.9), ("floormat", 1, 1, 0.8), ("floorlamp", 1, 2, 0.8),
                     ("cabinet", 1, 1, 0.4), ("shelves", 1, 1, 0.4), ("otherfurniture", 1, 1, 0.4),
                     ("plant", 1, 2, 0.7), ("side_table", 1, 2, 0.7), ("lounge_chair", 1, 2, 0.7)],
-    "kitchen": [("counter", 1, 2, 1.0), ("kitchen_sink", 1, 1, 1.0), ("fridge", 1, 1, 1.0), ("upper_cabinet", 1, 2, 0.8),
-                ("table", 1, 1, 0.7), ("chair", 0, 0, 1.0), ("picture", 1, 1, 0.4), ("boxes", 1, 1, 0.3),
-                ("shelves", 1, 1, 0.4), ("cabinet", 1, 1, 0.5), ("floormat", 1, 1, 0.3), ("plant", 1, 1, 0.4)],
+    "kitchen": [("counter", 1, 2, 1.0), ("kitchen_sink", 1, 1, 1.0), ("fridge", 1, 1, 1.0),
+                ("upper_cabinet", 1, 2, 0.8), ("table", 1, 1, 0.7), ("chair", 0, 0, 1.0), ("picture", 1, 1, 0.4),
+                ("boxes", 1, 1, 0.3), ("shelves", 1, 1, 0.4), ("cabinet", 1, 1, 0.5), ("floormat", 1, 1, 0.3),
+                ("plant", 1, 1, 0.4)],
     "bathroom": [("toilet", 1, 1, 1.0), ("vanity", 1, 1, 1.0), ("mirror", 1, 1, 1.0), ("bathtub", 1, 1, 0.7),
                  ("towel", 1, 2, 0.9), ("floormat", 1, 1, 0.6), ("cabinet", 1, 1, 0.5), ("shelves", 1, 1, 0.5),
                  ("picture", 1, 1, 0.3), ("plant", 1, 1, 0.4)],
@@ -57,7 +58,8 @@ SURFACES = {"table": (2, 0.1), "dining_table": (3, 0.0), "coffee_table": (2, 0.0
             "cabinet": (2, 0.2), "otherfurniture": (2, 0.3), "side_table": (1, 0.8), "shelves": (2, 0.0),
             "vanity": (1, 0.0), "bookshelf": (1, 0.0)}
 # where the bulb of a lamp-carrying piece is (item frame): below its shade, beside the stem
-LAMP_BULB = {"floorlamp": lambda dims: (0.06, 0.0, dims[2] - 0.40), "nightstand": lambda dims: (0.06, 0.0, dims[2] + 0.18)}
+LAMP_BULB = {"floorlamp": lambda dims: (0.06, 0.0, dims[2] - 0.40),
+             "nightstand": lambda dims: (0.06, 0.0, dims[2] + 0.18)}
 WALL_T = 0.12  # wall thickness (m): walls stand outside the room's floor plan
 
 # room type -> ((W min, D min), (W max, D max)) in metres: rooms of real size (4 to 10 m a side; bathrooms smaller)
@@ -90,7 +92,8 @@ class Family:
     clutter: float = 0.6  # how many small props stand on the family's surfaces (0..1)
     recessed: bool = False  # downlights set into the ceiling: light without a lamp to see
     annex: Optional[dict] = None  # the next room behind one wall (`_make_annex`), shared by the family's settings
-    outside: list = field(default_factory=list)  # ("ground", z), then ("building", x, y, w, d, top, k), ("tree", x, y, r, h)
+    outside: list = field(default_factory=list)  # ("ground", z), then ("building", x, y, w, d, top, k),
+                                                 # ("tree", x, y, r, h)
 
 
 def _scaled_count(kind: str, n: int, area: float) -> int:
@@ -161,7 +164,8 @@ def annex_box(annex: dict, W: float, D: float, pad: float = 0.0) -> tuple[float,
     yaw, origin = annex_frame(annex, W, D)
     R = _rot(yaw)[:2, :2]
     L, Da = annex["a1"] - annex["a0"], annex["depth"]
-    corners = np.array([origin + exact.matmul(R, np.array(c)) for c in ((-pad, 0), (L + pad, 0), (-pad, Da + pad), (L + pad, Da + pad))])
+    corners = np.array([origin + exact.matmul(R, np.array(c))
+                        for c in ((-pad, 0), (L + pad, 0), (-pad, Da + pad), (L + pad, Da + pad))])
     return (float(corners[:, 0].min()), float(corners[:, 1].min()), float(corners[:, 0].max()),
             float(corners[:, 1].max()))
 
@@ -228,7 +232,8 @@ def make_family(seed: int, index: int, room: str) -> Family:
     if fam.annex is not None:
         a = fam.annex
         a["items"] = _draw_items(rng, a["room"], (a["a1"] - a["a0"]) * a["depth"], keep=0.45)
-    fam.outside = _make_outside(rng, house_box(fam), -float(rng.choice([0.4, rng.uniform(3.0, 9.0), rng.uniform(3.0, 9.0)])))
+    fam.outside = _make_outside(rng, house_box(fam),
+                                -float(rng.choice([0.4, rng.uniform(3.0, 9.0), rng.uniform(3.0, 9.0)])))
     return fam
 
 
@@ -242,7 +247,8 @@ def _props_on(it: Item, fam: Family, rng: np.random.Generator) -> list:
     objs = []
     if it.kind not in ("nightstand",) and rng.uniform() < p_lamp:  # nightstands already carry their lamp
         x, y = rng.uniform(-0.35, 0.35) * it.w, rng.uniform(-0.2, 0.2) * it.d
-        objs.append(Obj(ID["lamp"], [(_cyl(x, y, top, 0.07, 0.03), "metal"), (_cyl(x, y, top + 0.03, 0.012, 0.22), "metal"),
+        objs.append(Obj(ID["lamp"], [(_cyl(x, y, top, 0.07, 0.03), "metal"),
+                                     (_cyl(x, y, top + 0.03, 0.012, 0.22), "metal"),
                                      (_cyl(x, y, top + 0.2, 0.13, 0.18), "shade")]))
         it.lights.append((x + 0.05, y, top + 0.16))  # its bulb, just below the shade, beside the stem
     n = int(rng.binomial(n_max, fam.clutter))
@@ -251,7 +257,8 @@ def _props_on(it: Item, fam: Family, rng: np.random.Generator) -> list:
         kind = rng.choice(["vase", "bottle", "bowl", "books", "paper"], p=[0.4, 0.3, 0.2, 0.05, 0.05])
         mat = f"prop{int(rng.integers(N_PROP_MATERIALS))}"
         if kind == "vase":
-            objs.append(Obj(ID["otherprop"], [(_cyl(x, y, top, rng.uniform(0.05, 0.09), rng.uniform(0.15, 0.35), 10), mat)]))
+            objs.append(Obj(ID["otherprop"],
+                            [(_cyl(x, y, top, rng.uniform(0.05, 0.09), rng.uniform(0.15, 0.35), 10), mat)]))
         elif kind == "bottle":
             objs.append(Obj(ID["otherprop"], [(_cyl(x, y, top, 0.035, rng.uniform(0.2, 0.32), 8), mat)]))
         elif kind == "bowl":
@@ -598,8 +605,8 @@ def _place_lights(lay: Layout, draft: _Draft, fam: Family, seed: int, dim: bool)
     """The light of one setting, into `lay`: daylight (the sky through every window, sampled at its centre, and on
     a sunny day the sun, whose patches fall through the windows; dusk in a dim setting), the family's ceiling
     fixtures (same positions and colour in every setting; their lamps are items unless the family's are recessed
-    downlights; all on in a bright setting, one weak one in a dim setting), one fixture in the annex, the floor, table and bedside lamps (some switched on),
-    and the light bounced off the walls (tinted by their paint)."""
+    downlights; all on in a bright setting, one weak one in a dim setting), one fixture in the annex, the floor, table
+    and bedside lamps (some switched on), and the light bounced off the walls (tinted by their paint)."""
     W, D, H = draft.W, draft.D, draft.H
     lrng = np.random.default_rng([seed, 7919, fam.index, 2])
     rng = draft.rng

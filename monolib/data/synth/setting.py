@@ -62,7 +62,8 @@ def render_setting(s: dict, study_key: dict, width: int, height: int, seed: int,
     rng = np.random.default_rng([seed, 49979687, s["index"]])
     detail = out / "_detail"
     detail.mkdir(parents=True, exist_ok=True)
-    _write_csv(detail / "metadata_scene.csv", ["parameter_name", "parameter_value"], [["meters_per_asset_unit", repr(mpau)]])
+    _write_csv(detail / "metadata_scene.csv", ["parameter_name", "parameter_value"],
+               [["meters_per_asset_unit", repr(mpau)]])
     _write_csv(detail / "metadata_cameras.csv", ["camera_name"], [[f"cam_{c:02d}"] for c in range(len(scenes))])
     classes: set = set()
     frames = []
