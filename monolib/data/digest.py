@@ -16,19 +16,10 @@ import hashlib
 import re
 from pathlib import Path
 
-from monolib.io import read_json
+from monolib.io import read_json, sha256
 
 FILE = "dataset_digest.json"   # in the study's figures folder
-CHUNK = 1 << 20
 _FRAME_FILE = re.compile(r"^frame\.\d+\.(.+)$")
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(CHUNK):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def kind_of(relative: str) -> str:
@@ -57,7 +48,7 @@ def digest(root: str | Path) -> dict:
     top: dict[str, str] = {}
     per_setting: dict[str, list[tuple[str, str]]] = {}
     for rel, p in files:
-        sha = file_sha256(p)
+        sha = sha256(p)
         if "/" in rel:
             per_setting.setdefault(rel.split("/", 1)[0], []).append((rel, sha))
         else:
