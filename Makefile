@@ -11,24 +11,34 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-imagenet bench-selection bench-selection-real clean-runs
+.PHONY: install lock readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-cell bench-imagenet bench-selection bench-selection-real clean-runs
 
 install: $(STAMP)
 
+# From requirements.lock (the exact versions and files the committed figures were made with: make lock) when it
+# is for this Python and platform, else from pyproject.toml's ranges (said on stderr).
 # The environment takes about 6.5 GB (torch 2.14.1 is a CUDA build): say so up front rather than fail half-way
 # through pip with "No space left on device".
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml requirements.lock
 	@test -x $(PY) || $(PYTHON) -c "import shutil, sys; free = shutil.disk_usage('.').free / 1e9; \
 	sys.exit(0 if free >= $(NEED_GB) else f'make install: {free:.1f} GB free on the disk of $(CURDIR), \
 	the virtual environment $(VENV)/ needs about $(NEED_GB) GB (torch 2.14.1 with its CUDA libraries). Free some space and run make again.')"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet --no-compile -e '.[test]'
+	@if $(PY) -m monolib.lockfile --usable; then \
+		$(PY) -m pip install --quiet --no-compile --require-hashes --no-deps -r requirements.lock && \
+		$(PY) -m pip install --quiet --no-compile --no-deps -e .; \
+	else $(PY) -m pip install --quiet --no-compile -e '.[test]'; fi
 	@# byte-compiled on every core (pip compiles on one: 40 s of a 2-core install); a file of another Python's syntax
 	@# (torch ships a few for 3.12) fails here as pip lets it fail
 	@$(PY) -m compileall -qq -j 0 $(VENV)/lib > /dev/null || true
 	@if git rev-parse --git-dir >/dev/null 2>&1; then $(VENV)/bin/nbstripout --install --attributes .gitattributes; fi
 	touch $(STAMP)
+
+# requirements.lock from pip's resolution of pyproject.toml (nothing installed; the files' hashes from the index)
+lock: install
+	$(PY) -m pip install --dry-run --ignore-installed --quiet --report $(VENV)/lock-report.json -e '.[test]'
+	$(PY) -m monolib.lockfile $(VENV)/lock-report.json requirements.lock
 
 study: install
 	$(VENV)/bin/monolib study $(STUDY)
@@ -90,7 +100,7 @@ zoo-pilot: install
 # every cell must run, and each cell marked # NBVAL_CHECK_OUTPUT must print what the committed notebook holds (its
 # outputs survive the git filter through nbstripout's keep_output metadata, see notebooks/conftest.py). When a change
 # moves those numbers on purpose: python tests/refresh_notebook_outputs.py, then review the diff.
-# On TEST_WORKERS processes (pytest-xdist): the tests that share the checkout's runs/ folder run on one of them in
+# On TEST_WORKERS processes (pytest-xdist): the test files marked shares_runs (the checkout's runs/ folder) run on one of them in
 # file order, the rest beside them (tests/conftest.py, `group_of`). TEST_WORKERS=0: one process.
 test: install
 	$(PY) -m pytest -n $(TEST_WORKERS) tests notebooks --nbval-lax --nbval-current-env --nbval-sanitize-with $(CURDIR)/tests/nbval_sanitize.cfg -p no:cacheprovider --durations=15
@@ -102,46 +112,50 @@ test-fast: install
 	$(PY) -m pytest tests -m "not slow" -p no:cacheprovider -q --durations=10
 
 bench: install
-	$(VENV)/bin/monolib bench --out figures/bench.json
+	$(VENV)/bin/monolib bench frames --out figures/bench.json
 
 # the grid's cells per minute: the local path and local Dask clusters of 1 and 2 workers (smoke study), and the
 # paper study projected on 1, 8 and 64 workers from those per-cell costs
+# where a grid cell's seconds go, on the finished quick study (figures/cell_profile.json and .md; about a minute)
+bench-cell: install
+	$(VENV)/bin/monolib bench cell --study quick --out figures/cell_profile.json
+
 bench-grid: install
-	$(VENV)/bin/monolib bench --grid --out figures/scaling.json
+	$(VENV)/bin/monolib bench grid --out figures/scaling.json
 
 # the dataset stage of quick rendered by the generator before version 5 (c736e94) and by this one, side by side
 bench-render: install
-	$(VENV)/bin/monolib bench --render-vs c736e94 --study quick --out figures/render_bench.json
+	$(VENV)/bin/monolib bench render c736e94 --study quick --out figures/render_bench.json
 
 # what a localizer of each method of the quick study costs (run `make study` first): database bytes per frame, ms per
 # query image end to end, recall@1, side by side
 bench-localizers: install
-	$(VENV)/bin/monolib bench --localizers --study quick --out figures/localizers.json
+	$(VENV)/bin/monolib bench localizers --study quick --out figures/localizers.json
 
 # the localizer on photos (run `make study` first): recall@1 of each method it offers when quick's test frames go
 # through the photo path (JPEG quality 90, decoded, cropped, resized) against the same cells on the study's frames,
 # and one image's latency end to end on one torch thread, median and p90: figures/localize.md and .csv
 bench-localize: install
-	$(VENV)/bin/monolib bench --localize --study quick --out figures/localize.md
+	$(VENV)/bin/monolib bench localize --study quick --out figures/localize.md
 
 # one imagenet_triplet cell of the quick study (run `make study` first) with glibc's malloc as it is and with the
 # project's (monolib.device.keep_freed_memory), in a new process each: seconds, system CPU, page faults, same files
 bench-allocator: install
-	$(VENV)/bin/monolib bench --allocator --study quick --out figures/allocator.json
+	$(VENV)/bin/monolib bench allocator --study quick --out figures/allocator.json
 
 # how the trained encoders train and which epoch's model they keep (graph encoders, image_triplet, imagenet_triplet):
 # the rules compared on the training split of the quick study (run `make study` first; resumable): figures/selection.md
 bench-selection: install
-	$(VENV)/bin/monolib bench --selection --study quick
+	$(VENV)/bin/monolib bench selection --study quick
 
 # the same rules at the development set's full training size, on fold 0's training side (after make real has
 # unpacked it; resumable; about 75 minutes on 2 cores): figures/real_full/selection.md, the rule params/real_full.yaml trains by
 bench-selection-real: install
-	$(VENV)/bin/monolib bench --selection --study real_full
+	$(VENV)/bin/monolib bench selection --study real_full
 
 # the measurement behind imagenet_vlad's whitening (none): recall@1 with and without it
 bench-imagenet: install
-	$(VENV)/bin/monolib bench --imagenet-choices --study quick --out figures/imagenet_choices.json
+	$(VENV)/bin/monolib bench imagenet --study quick --out figures/imagenet_choices.json
 
 clean-runs:
 	rm -rf runs/

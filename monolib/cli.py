@@ -78,29 +78,40 @@ def _localize_parsers(sub) -> None:
                    "semantics and depth, its scene graph, the nearest places' images (several images: OUT-1.png, ...)")
 
 
+BENCHMARKS = {  # name: (help, takes --out); each one of `monolib.bench`'s modules (its docstring says what it does)
+    "frames": ("one frame's stages, graph construction against the original code's, kNN, perception fps", True),
+    "render": ("the study's dataset stage rendered by the generator of COMMIT and by this checkout's (minutes)", True),
+    "localizers": ("a localizer of each method of the finished --study: database bytes per frame, ms per query "
+                   "image, recall@1 (minutes)", True),
+    "localize": ("recall@1 of each method's localizer on the finished --study's test frames as JPEG photos, and one "
+                 "image's latency on one thread (--out, default figures/localize.md of the study; minutes)", True),
+    "imagenet": ("imagenet_vlad of --study with and without PCA whitening (about a minute)", True),
+    "allocator": ("one imagenet_triplet cell of the finished --study with glibc's malloc as it is and with "
+                  "monolib's (MONOLIB_ALLOCATOR), side by side (minutes)", True),
+    "cell": ("where the finished --study's grid cells spend their seconds: the grid by method, one gcn cell's "
+             "training profiled, the dense floor (a minute)", True),
+    "selection": ("the model-selection rules of the trained encoders compared on the training split of --study "
+                  "(figures/selection.md; minutes)", False),
+    "grid": ("the smoke grid on the local path and on local Dask clusters of 1 and 2 workers, and the paper study "
+             "projected on 1/8/64 workers (minutes)", True),
+}
+
+
 def _bench_parser(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks: rendering, per-frame stages, graph construction, kNN")
-    p.add_argument("--width", type=int, default=256)
-    p.add_argument("--height", type=int, default=192)
-    p.add_argument("--study", default="quick", help="the study whose networks and resolution are timed")
-    p.add_argument("--out", default=None, help="also write the figures as JSON (e.g. figures/bench.json)")
-    p.add_argument("--render-vs", default=None, metavar="COMMIT", help="instead: the study's dataset stage "
-                   "rendered by the generator of COMMIT and by this checkout's, side by side (minutes)")
-    p.add_argument("--localizers", action="store_true", help="instead: a localizer of each method of the finished "
-                   "--study, side by side: database bytes per frame, ms per query image, recall@1 (minutes)")
-    p.add_argument("--localize", action="store_true", help="instead: recall@1 of the localizer of each method of "
-                   "the finished --study on its test frames as JPEG photos, against the same cells on the study's "
-                   "frames, and one image's latency on one thread (--out, default figures/localize.md of the study, "
-                   "and a .csv beside it; minutes)")
-    p.add_argument("--imagenet-choices", action="store_true", help="instead: imagenet_vlad of --study with and "
-                   "without PCA whitening; recall@1 on both protocols (about a minute)")
-    p.add_argument("--allocator", action="store_true", help="instead: one imagenet_triplet cell of the finished "
-                   "--study with glibc's malloc as it is and with monolib's (MONOLIB_ALLOCATOR), side by side "
-                   "(minutes)")
-    p.add_argument("--selection", action="store_true", help="instead: the model-selection rules of the trained "
-                   "encoders compared on the training split of --study (figures/selection.md; minutes)")
-    p.add_argument("--grid", action="store_true", help="instead: the smoke grid on the local path and on local "
-                   "Dask clusters of 1 and 2 workers, and the paper study projected on 1/8/64 workers (minutes)")
+    p = sub.add_parser("bench", help="benchmarks that print figures: monolib bench NAME (one of "
+                       f"{', '.join(BENCHMARKS)})")
+    names = p.add_subparsers(dest="benchmark", required=True, metavar="NAME")
+    for name, (text, out) in BENCHMARKS.items():
+        b = names.add_parser(name, help=text, description=text)
+        if name == "render":
+            b.add_argument("commit", metavar="COMMIT", help="the commit whose generator renders beside this one")
+        if name != "grid":
+            b.add_argument("--study", default="quick", help="the study measured (default: %(default)s)")
+        if name == "frames":
+            b.add_argument("--width", type=int, default=256)
+            b.add_argument("--height", type=int, default=192)
+        if out:
+            b.add_argument("--out", default=None, help="also write the figures as JSON, and a page beside it")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -207,30 +218,44 @@ def _localize(args) -> int:
 
 
 def _bench(args) -> int:
-    from monolib import bench  # deferred: torch
-
-    if args.render_vs:
-        bench.render_side_by_side(args.render_vs, args.study, args.out)
-    elif args.imagenet_choices:
-        bench.imagenet_choices(args.study, out=args.out)
-    elif args.localizers:
-        bench.localizer_costs(args.study, out=args.out)
-    elif args.localize:
-        bench.localize_photos(args.study,
-                              out=args.out or paths.figures_dir(load_study(args.study).name) / "localize.md")
-    elif args.allocator:
-        bench.allocator_side_by_side(args.study, out=args.out)
-    elif args.selection:
+    name, out = args.benchmark, getattr(args, "out", None)
+    if name == "selection":
         from monolib.retrieval import model_selection  # deferred: torch
 
         study = load_study(args.study)
         print(model_selection.write(study, paths.figures_dir(study.name))["md"])
-    elif args.grid:
+    elif name == "grid":
         from monolib.study import scaling  # deferred: torch
 
-        scaling.run(out=args.out)
+        scaling.run(out=out)
+    elif name == "frames":
+        from monolib.bench import frames  # deferred: torch
+
+        frames.run(args.width, args.height, args.study, out)
+    elif name == "render":
+        from monolib.bench import render  # deferred: torch
+
+        render.render_side_by_side(args.commit, args.study, out)
+    elif name == "localizers":
+        from monolib.bench import localizers  # deferred: torch
+
+        localizers.localizer_costs(args.study, out=out)
+    elif name == "localize":
+        from monolib.bench import photos  # deferred: torch
+
+        photos.localize_photos(args.study, out=out or paths.figures_dir(load_study(args.study).name) / "localize.md")
+    elif name == "imagenet":
+        from monolib.bench import imagenet  # deferred: torch
+
+        imagenet.imagenet_choices(args.study, out=out)
+    elif name == "allocator":
+        from monolib.bench import allocator  # deferred: torch
+
+        allocator.allocator_side_by_side(args.study, out=out)
     else:
-        bench.run(args.width, args.height, args.study, args.out)
+        from monolib.bench import cell  # deferred: torch
+
+        cell.run(args.study, out=out)
     return 0
 
 

@@ -1,4 +1,5 @@
 """Shared pytest fixtures, and how `make test` shares the tests between its processes (`group_of`)."""
+import ast
 import functools
 import os
 import subprocess
@@ -7,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from monolib import paths
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="session")
@@ -31,28 +32,52 @@ def smoke_study():
     return out
 
 
-# `make test` runs pytest on two processes (pytest-xdist, `-n 2`), a file at a time per process. The files that write
-# into the checkout's runs/ folder (the smoke study, its figures, the notebooks that read and draw them) run on one
-# process, one after another in file order as without xdist: their group is "runs". The files that only read the
-# smoke study's cells and inputs (a Dask cluster's cells and warm kernels compared with them, into folders of their
-# own) form a second group, and every other file works in a temporary folder of its own.
-WRITES_RUNS = ("smoke_study", "paths.study_dir", "paths.figures_dir", "paths.cell_dir", "monolib.cli",
-               "paths.NOTEBOOKS", "papermill")
-READS_SMOKE_CELLS = ("tests/test_cluster.py", "tests/test_kernels.py")
+# `make test` runs pytest on two processes (pytest-xdist), a group of tests at a time per process. A test file that
+# reads or writes the checkout's runs/ folder (the smoke study, its figures, the notebooks that read and draw them)
+# says so with its module marker `pytestmark = pytest.mark.shares_runs`: those files run on one process, one after
+# another in file order as without xdist. The files marked `reads_smoke_cells` only read the smoke study's cells and
+# inputs (a Dask cluster's cells and warm kernels compared with them, into folders of their own): a second group.
+# The notebooks under nbval run at their defaults, on the smoke study: in the first group. Every other file works in
+# a temporary folder of its own and is a group by itself (its module fixtures computed once).
+# xdist's scheduler sees node ids, not markers, so the groups are read from each file's `pytestmark` statement
+# (`markers_of`), and `pytest_collection_modifyitems` checks, in each process, that every test carries exactly its
+# file's group marker. (xdist's own `--dist loadgroup` cannot be used: pytest 9 ignores the group suffix that
+# xdist 3.8 writes into a test's node id, and every test would run wherever a process is free.)
+GROUPS = {"shares_runs": "runs", "reads_smoke_cells": "smoke cells"}
+
+
+@functools.lru_cache(maxsize=None)
+def markers_of(path: str) -> frozenset:
+    """The names `X` of the `pytest.mark.X` in the module-level ``pytestmark = ...`` of a test file (relative to the
+    checkout); empty for a file without one, or not a Python file."""
+    file = ROOT / path
+    if file.suffix != ".py" or not file.is_file():
+        return frozenset()
+    names = set()
+    for node in ast.parse(file.read_text(), str(file)).body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "pytestmark" for t in node.targets):
+            names |= {n.attr for n in ast.walk(node.value) if isinstance(n, ast.Attribute)
+                      and isinstance(n.value, ast.Attribute) and n.value.attr == "mark"}
+    return frozenset(names)
 
 
 def group_of(path: str) -> str:
     """The xdist work unit of a test file (a path relative to the checkout, as in a node id)."""
-    if path in READS_SMOKE_CELLS:
-        return "smoke cells"
-    if path.startswith("notebooks/") or any(word in _text(paths.ROOT / path) for word in WRITES_RUNS):
-        return "runs"
-    return path
+    if path.startswith("notebooks/"):
+        return GROUPS["shares_runs"]
+    marked = [group for marker, group in GROUPS.items() if marker in markers_of(path)]
+    return marked[0] if marked else path
 
 
-@functools.lru_cache(maxsize=None)
-def _text(path: Path) -> str:
-    return path.read_text() if path.suffix == ".py" and path.is_file() else ""
+def pytest_collection_modifyitems(items):
+    """A group marker on a single test, or a file's marker missing from one of its tests, would put that test in the
+    wrong process: refused."""
+    for item in items:
+        path = item.nodeid.split("::", 1)[0]
+        wanted = {m for m in GROUPS if m in markers_of(path)}
+        if {m for m in GROUPS if item.get_closest_marker(m) is not None} != wanted:
+            raise pytest.UsageError(f"{item.nodeid}: the markers {', '.join(GROUPS)} belong in its file's "
+                                    f"module-level `pytestmark` (tests/conftest.py, `group_of`), not on one test")
 
 
 def pytest_xdist_make_scheduler(config, log):

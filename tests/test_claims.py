@@ -16,6 +16,9 @@ from monolib.report import claims, statistics, verify
 from monolib.retrieval import grid
 
 
+pytestmark = pytest.mark.shares_runs
+
+
 def synthetic_queries(hit_rates: dict, n_seeds: int = 2, n_settings: int = 4, n_queries: int = 6,
                       seed: int = 0) -> pd.DataFrame:
     """Per-query recall@1 of a few (method, scenario, threshold) groups of the paper protocol: each query a hit

@@ -14,7 +14,7 @@ import yaml
 from monolib import paths
 from monolib.params import StudyError, load_study
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.reads_smoke_cells]
 MONOLIB = [sys.executable, "-m", "monolib.cli"]
 DASK = str(Path(sys.executable).parent / "dask")
 ENV = {**os.environ, "MPLBACKEND": "agg"}

@@ -15,6 +15,9 @@ from monolib.params import StudyError, load_study
 from monolib.retrieval.grid import grid
 from tests.published_files import layout, study_file, write_release
 
+pytestmark = pytest.mark.shares_runs
+
+
 SAMPLE = paths.ROOT.parent / "shared" / "data" / "published_graphs_sample" / "ai_001_001_00_graphs.pt"
 VOLUMES = [1, 2, 3, 4, 5, 6]
 

@@ -160,9 +160,9 @@ def test_a_frame_with_a_missing_file_becomes_an_empty_graph(tmp_path, monkeypatc
 
 
 def test_the_original_double_loop_builds_the_same_graph():
-    """The benchmark's reference (`monolib.bench.original_graph`, the original code's per-pixel loop) and ours agree
-    node for node and edge for edge, with invalid depth and unlabelled pixels in the frame."""
-    from monolib.bench import original_graph
+    """The benchmark's reference (`monolib.bench.frames.original_graph`, the original code's per-pixel loop) and ours
+    agree node for node and edge for edge, with invalid depth and unlabelled pixels in the frame."""
+    from monolib.bench.frames import original_graph
     from monolib.data.hypersim import Camera
     from monolib.graphs.build import build_scene_graph
 

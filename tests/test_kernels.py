@@ -17,7 +17,7 @@ import pytest
 from monolib import paths
 from monolib.study import kernels
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.reads_smoke_cells]
 CELL_FILES = ("cell.json", "rankings.csv", "protocol.csv", "embeddings.npy", "model.pt", "history.csv")
 
 

@@ -15,6 +15,9 @@ from monolib.params import load_study
 from monolib.perception import stage as perception
 from monolib.retrieval import cell
 
+pytestmark = pytest.mark.shares_runs
+
+
 BASE = load_study("smoke")
 
 

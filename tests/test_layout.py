@@ -12,6 +12,9 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.shares_runs
+
+
 PACKAGE = Path(__file__).resolve().parents[1] / "monolib"
 # the wings in the order data flows; a module may import its own wing (no cycle: tools/import_cycles) or a lower one
 ORDER = ["shared", "data", "perception", "graphs", "retrieval", "report", "study", "entry"]

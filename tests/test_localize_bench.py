@@ -1,18 +1,19 @@
-"""`monolib bench --localize` on the finished smoke study, at a small size: the page and the CSV it writes (which
+"""`monolib bench localize` on the finished smoke study, at a small size: the page and the CSV it writes (which
 methods, which numbers, how many queries), the recall numbers percentages computed by the bench, the latency
 measured over the images asked for."""
 import pandas as pd
 import pytest
 
-from monolib import bench, localize, methods
+from monolib import localize, methods
+from monolib.bench import photos
 from monolib.params import load_study
 
-pytestmark = pytest.mark.slow  # the finished smoke study (`smoke_study`)
+pytestmark = [pytest.mark.slow, pytest.mark.shares_runs]  # the finished smoke study (`smoke_study`)
 
 
 def test_the_localize_bench_writes_its_page_and_csv(smoke_study, tmp_path):
     out = tmp_path / "figures" / "localize.md"
-    record = bench.localize_photos("smoke", out=out, latency_images=40)
+    record = photos.localize_photos("smoke", out=out, latency_images=40)
     study = load_study("smoke")
     page, table = out.read_text(), pd.read_csv(out.with_suffix(".csv"))
 

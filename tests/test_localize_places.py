@@ -18,7 +18,7 @@ from PIL import Image
 from monolib import cli, localize, paths
 from monolib.params import load_study
 
-pytestmark = pytest.mark.slow  # the finished smoke study (`smoke_study`)
+pytestmark = [pytest.mark.slow, pytest.mark.shares_runs]  # the finished smoke study (`smoke_study`)
 ENV = {**os.environ, "MPLBACKEND": "agg", "OMP_NUM_THREADS": "1"}
 
 

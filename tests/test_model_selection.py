@@ -6,6 +6,9 @@ from monolib.params import load_study
 from monolib.retrieval.model_selection import RULES, TRAININGS, recommend, rules_table, study_rule, study_training
 
 
+pytestmark = pytest.mark.shares_runs
+
+
 def histories(peaks: dict[str, int], seeds: int = 3, epochs: int = 40) -> pd.DataFrame:
     """Runs whose validation mAP peaks at `peaks[training]` and whose inner recall@1 is the epoch / 100."""
     rows = [{"training": training, "method": "gcn", "threshold": 0.0, "seed": seed, "epoch": e,

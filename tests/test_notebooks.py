@@ -17,6 +17,9 @@ import pytest
 from monolib import methods, paths
 from monolib.params import load_study
 
+pytestmark = pytest.mark.shares_runs
+
+
 NOTEBOOKS = sorted(paths.NOTEBOOKS.glob("*.ipynb"))
 SANITIZE = Path(__file__).with_name("nbval_sanitize.cfg")
 CHECK = "# NBVAL_CHECK_OUTPUT"

@@ -17,7 +17,7 @@ import torch
 from monolib import io, paths
 from monolib.params import load_study
 
-pytestmark = pytest.mark.filterwarnings("ignore:.*canonical 60-degree camera")
+pytestmark = [pytest.mark.filterwarnings("ignore:.*canonical 60-degree camera"), pytest.mark.shares_runs]
 
 H, W = 48, 64
 CLASSES = {1: (150, 140, 130), 2: (90, 60, 40), 5: (200, 40, 40), 7: (40, 160, 60), 11: (40, 60, 200)}

@@ -11,6 +11,9 @@ import pytest
 from monolib import progress
 
 
+pytestmark = pytest.mark.shares_runs
+
+
 def lines_of(**kwargs) -> tuple[progress.Lines, io.StringIO]:
     out = io.StringIO()
     return progress.Lines(file=out, **kwargs), out

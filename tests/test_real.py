@@ -17,6 +17,9 @@ from monolib.graphs.published import PublishedGraphError
 from monolib.params import StudyError, load_study
 from tests.published_files import layout, study_file, write_release
 
+pytestmark = pytest.mark.shares_runs
+
+
 DEV_ARCHIVE = paths.ROOT.parent / "shared" / "data" / "published_graphs_dev.tar.xz"
 VOLUMES = [1, 2, 3, 4, 5, 6]
 
@@ -183,7 +186,7 @@ def test_the_development_set_as_it_is(tmp_path):
 
 @pytest.mark.slow
 def test_model_selection_on_a_study_of_folds_holds_out_volumes_of_fold_0s_training_side(tmp_path, monkeypatch):
-    """`monolib bench --selection` on published graphs: the inner test is as many volumes as fold 0 tests, drawn
+    """`monolib bench selection` on published graphs: the inner test is as many volumes as fold 0 tests, drawn
     from its training side (never its test volumes); no image encoder is compared (no frames); each run's epochs
     are recorded, and selection.md says what was held out."""
     import math

@@ -21,6 +21,9 @@ from monolib.report import figures, results, statistics, write as report
 A, B, C = "ai_001_001", "ai_001_002", "ai_002_001"
 
 
+pytestmark = pytest.mark.shares_runs
+
+
 def key(setting: str, i: int, cam: str = "cam_00") -> str:
     return f"{setting}/{cam}/{i:04d}"
 

@@ -19,7 +19,7 @@ from monolib.params import load_study
 from monolib.report import graph_sizes
 from monolib.retrieval import cell
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.shares_runs]
 NAME = "smoke_shared"
 
 

@@ -19,7 +19,7 @@ from monolib.params import load_study
 from monolib.report import graph_sizes
 from monolib.report.results import check_protocols, recompute_metrics, split_protocols
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.shares_runs]
 MONOLIB = [sys.executable, "-m", "monolib.cli"]
 ENV = {**os.environ, "MPLBACKEND": "agg"}
 

@@ -55,7 +55,7 @@ def files(setting: Path, cam: str, i: int) -> dict:
 
 
 @pytest.fixture(scope="module")
-def smoke_study():
+def smoke_params():
     return params.load_study("smoke")
 
 
@@ -68,9 +68,9 @@ def _tiny_study():
     return SimpleNamespace(seed=3, dataset=ds)
 
 
-def test_plan_families_splits_and_names(smoke_study):
+def test_plan_families_splits_and_names(smoke_params):
     q = params.load_study("quick")
-    for study in (smoke_study, q):
+    for study in (smoke_params, q):
         plan = synth.plan(study)
         ds = study.dataset
         n_test = ds.test_settings + ds.test_siblings
@@ -98,8 +98,8 @@ def test_plan_families_splits_and_names(smoke_study):
         assert max(sizes.values()) == ds.family_size  # training settings have siblings too
 
 
-def test_siblings_share_materials_and_catalogue_not_layout(smoke_study):
-    plan = synth.plan(smoke_study)
+def test_siblings_share_materials_and_catalogue_not_layout(smoke_params):
+    plan = synth.plan(smoke_params)
     a, b = [s for s in plan if s["split"] == "test" and s["family"] == 0]
     fa, fb = synth.make_family(0, a["family"], a["room_type"]), synth.make_family(0, b["family"], b["room_type"])
     assert fa.materials == fb.materials and fa.items == fb.items
@@ -116,8 +116,8 @@ def test_scene_exposure_is_steady_along_a_trajectory():
     assert np.std(np.log(e)) < 0.05  # one level per scene, a small flicker
 
 
-def test_files_dtypes_shapes_and_labels(smoke_dataset, smoke_study):
-    H, W = smoke_study.dataset.height, smoke_study.dataset.width
+def test_files_dtypes_shapes_and_labels(smoke_dataset, smoke_params):
+    H, W = smoke_params.dataset.height, smoke_params.dataset.width
     n = 0
     for s, cam, i in frames_on_disk(smoke_dataset):
         f = files(s, cam, i)
@@ -142,7 +142,7 @@ def test_files_dtypes_shapes_and_labels(smoke_dataset, smoke_study):
         jpg = cv2.imread(str(f["tonemap"]))
         assert jpg is not None and jpg.shape == (H, W, 3)
         n += 1
-    assert n == sum(s["frames"] for s in synth.plan(smoke_study))
+    assert n == sum(s["frames"] for s in synth.plan(smoke_params))
 
 
 def test_depth_is_euclidean_distance_of_position_in_asset_units(smoke_dataset):
@@ -189,7 +189,7 @@ def test_camera_poses(smoke_dataset):
             assert len(frames) == len(t)
 
 
-def test_split_csv_matches_frames_and_metadata(smoke_dataset, smoke_study):
+def test_split_csv_matches_frames_and_metadata(smoke_dataset, smoke_params):
     rows = split_rows(smoke_dataset)
     assert list(rows[0].keys()) == synth.SPLIT_COLUMNS
     on_disk = {(s.name, cam, i) for s, cam, i in frames_on_disk(smoke_dataset)}
@@ -199,7 +199,7 @@ def test_split_csv_matches_frames_and_metadata(smoke_dataset, smoke_study):
     split = {}
     for r in rows:
         assert split.setdefault(r["scene_name"], r["split_partition_name"]) == r["split_partition_name"]
-    ds = smoke_study.dataset
+    ds = smoke_params.dataset
     assert sorted(split.values()).count("test") == ds.test_settings + ds.test_siblings
     assert sorted(split.values()).count("train") == ds.train_settings
     for s in set(split):
@@ -229,7 +229,7 @@ def test_split_csv_matches_frames_and_metadata(smoke_dataset, smoke_study):
     assert {t["Animation"] for t in traj} == {f"{r['scene_name']}_{r['camera_name']}" for r in rows}
     assert all(t["Scene type"] for t in traj)
     meta = json.loads((smoke_dataset / "monolib_synth.json").read_text())
-    assert [m["name"] for m in meta["settings"]] == [p["name"] for p in synth.plan(smoke_study)]
+    assert [m["name"] for m in meta["settings"]] == [p["name"] for p in synth.plan(smoke_params)]
 
 
 def test_at_least_20_classes(smoke_dataset):
@@ -240,11 +240,11 @@ def test_at_least_20_classes(smoke_dataset):
     assert len(seen) >= 20, sorted(seen)
 
 
-def test_deterministic(smoke_dataset, smoke_study, tmp_path):
-    s = synth.plan(smoke_study)[2]
+def test_deterministic(smoke_dataset, smoke_params, tmp_path):
+    s = synth.plan(smoke_params)[2]
     out = tmp_path / s["name"]
-    synth.render_setting(s, synth._setting_key(s, smoke_study), smoke_study.dataset.width,
-                         smoke_study.dataset.height, smoke_study.seed, out)
+    synth.render_setting(s, synth._setting_key(s, smoke_params), smoke_params.dataset.width,
+                         smoke_params.dataset.height, smoke_params.seed, out)
     a, b = smoke_dataset / s["name"], out
     names = sorted(p.relative_to(a) for p in a.rglob("*.hdf5"))
     assert names == sorted(p.relative_to(b) for p in b.rglob("*.hdf5"))
@@ -252,17 +252,17 @@ def test_deterministic(smoke_dataset, smoke_study, tmp_path):
         np.testing.assert_array_equal(h5(a / n), h5(b / n), err_msg=str(n))
 
 
-def test_resume_skips_finished_settings(smoke_dataset, smoke_study, tmp_path, capsys):
+def test_resume_skips_finished_settings(smoke_dataset, smoke_params, tmp_path, capsys):
     root = tmp_path / "dataset"
     shutil.copytree(smoke_dataset, root)
-    victim = synth.plan(smoke_study)[-1]["name"]
+    victim = synth.plan(smoke_params)[-1]["name"]
     shutil.rmtree(root / victim)
     (root / f".tmp_{victim}_123").mkdir()  # a killed run's leftover
     before = (root / "ai_900_001" / "_detail" / "cam_00" / "camera_keyframe_positions.hdf5").stat().st_mtime_ns
     capsys.readouterr()
-    synth.render_dataset(smoke_study, root, progress=False)
+    synth.render_dataset(smoke_params, root, progress=False)
     out = capsys.readouterr().out
-    n = len(synth.plan(smoke_study))
+    n = len(synth.plan(smoke_params))
     assert f"{n - 1} already complete (skipped), 1 to render" in out
     assert (root / victim / "_detail" / "metadata_scene.csv").is_file()
     assert not list(root.glob(".tmp_*"))
@@ -308,12 +308,12 @@ def test_light_falls_off_across_a_wall():
     assert spreads and max(spreads) > 0.25, spreads
 
 
-def test_a_damaged_render_is_rendered_again(smoke_dataset, smoke_study, tmp_path, capsys):
+def test_a_damaged_render_is_rendered_again(smoke_dataset, smoke_params, tmp_path, capsys):
     """A truncated depth_meters.hdf5 of a finished setting is noticed by its size, named, and the setting
     rendered again to the same bytes; the other settings are kept."""
     root = tmp_path / "dataset"
     shutil.copytree(smoke_dataset, root)
-    victim = synth.plan(smoke_study)[1]["name"]
+    victim = synth.plan(smoke_params)[1]["name"]
     depth = root / victim / "images" / "scene_cam_00_geometry_hdf5" / "frame.0000.depth_meters.hdf5"
     whole = depth.read_bytes()
     depth.write_bytes(whole[: len(whole) // 2])
@@ -321,9 +321,9 @@ def test_a_damaged_render_is_rendered_again(smoke_dataset, smoke_study, tmp_path
     marker = json.loads((root / victim / "_detail" / "monolib_synth_setting.json").read_text())
     assert len(marker["files"]) == sum(1 for p in (smoke_dataset / victim).rglob("*") if p.is_file()) - 1
     capsys.readouterr()
-    synth.render_dataset(smoke_study, root, progress=False)
+    synth.render_dataset(smoke_params, root, progress=False)
     out = capsys.readouterr().out
-    n = len(synth.plan(smoke_study))
+    n = len(synth.plan(smoke_params))
     assert f"{victim}: images/scene_cam_00_final_preview/frame.0001.tonemap.jpg and 1 more missing or not the " \
            "size rendered" in out
     assert f"{n - 1} already complete (skipped), 1 to render" in out

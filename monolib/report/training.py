@@ -7,7 +7,7 @@ the ``paper`` protocol; per method and scenario the same over all its thresholds
 threshold with identical graphs (``same_graphs_as``) is the same training and counts once, at that threshold; a
 cell copied from another scenario with the same encoder inputs (``same_inputs_as``) is shown in its own scenario.
 
-``training_curves.png`` draws, when `monolib bench --selection` has written ``selection_curves.csv`` into the same
+``training_curves.png`` draws, when `monolib bench selection` has written ``selection_curves.csv`` into the same
 folder, validation recall@1 and mAP, the inner test's recall@1 (training settings held out) and the study's test
 recall@1 against the epoch for a few runs, with the epoch each run's selection keeps.
 """

@@ -5,7 +5,7 @@
   (the classic hand-crafted place-recognition descriptor).
 - `image_triplet`: the "texture-based" learnt global descriptor the paper argues against indoors: a small CNN on
   the RGB frame, trained from scratch with the GCN's triplet loss, triplets and data split, as long as the study's
-  `image_training.image_triplet` says (chosen on the training split by `monolib bench --selection`).
+  `image_training.image_triplet` says (chosen on the training split by `monolib bench selection`).
 """
 from __future__ import annotations
 

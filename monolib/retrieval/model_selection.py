@@ -433,7 +433,7 @@ def markdown(table: pd.DataFrame, oracle: pd.DataFrame, study_name: str, cpu_sec
     trainings = "; ".join(f"{t.name} ({t.schedule}, {t.epochs} epochs: "
                           + ", ".join("graph encoders" if x == GRAPH else f"`{x}`" for x in t.trains if x in groups)
                           + ")" for t in TRAININGS if groups & set(t.trains))
-    lines = [f"**Model selection, measured on the training split of `{study_name}`** (`monolib bench --selection`, "
+    lines = [f"**Model selection, measured on the training split of `{study_name}`** (`monolib bench selection`, "
              f"{cpu_seconds / 60:.0f} CPU-minutes of training, one thread a run). {held}, queried as the paper's "
              f"protocol queries its test "
              f"({INNER_POSITIVES} positives per setting, the other frames query, every frame of the other settings a "

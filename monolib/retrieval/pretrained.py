@@ -13,7 +13,7 @@ stride 32, 6 x 8 positions at 256x192).
 - `imagenet_triplet`: the learnt image baseline from ImageNet: the head (initialised from ImageNet) and GeM,
   L2-normalised (`TRIPLET_OUT`: no projection), fine-tuned with the GCN's triplet loss, triplets and split, trained
   as the study's `image_training.imagenet_triplet` says (its learning rate and epochs, chosen on the training split
-  by `monolib bench --selection`) (`monolib.retrieval.baselines.train_encoder`, the loop of the from-scratch
+  by `monolib bench selection`) (`monolib.retrieval.baselines.train_encoder`, the loop of the from-scratch
   `image_triplet`). The trunk stays
   frozen, as NetVLAD trains only the last convolutional block of its network (Arandjelović et al., CVPR 2016):
   its features are computed once per frame, so that the fine-tuning fits the study's CPU budget; the augmentation
@@ -42,7 +42,7 @@ VLAD_WORDS = 32
 VLAD_SAMPLE = 20_000      # local descriptors the vocabulary is learnt from (seeded subsample of the training split)
 VLAD_ITERS = 20
 VLAD_WHITEN = None        # PCA-whitened dimensions (None: VLAD as it is; whitening lost 4-14 points of recall@1
-                          # on quick, learnt from its 960 training vectors: `monolib bench --imagenet-choices`)
+                          # on quick, learnt from its 960 training vectors: `monolib bench imagenet`)
 # The fine-tuned encoder's output: the GeM vector L2-normalised, no projection, so that training starts from the
 # off-the-shelf `imagenet_gem` and the pretrained head is fine-tuned rather than fed to a new random layer.
 TRIPLET_OUT = None

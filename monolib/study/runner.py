@@ -12,7 +12,7 @@ import time
 from concurrent.futures import as_completed
 from pathlib import Path
 
-from monolib import locks, methods, paths
+from monolib import lockfile, locks, methods, paths
 from monolib.device import keep_freed_memory
 from monolib.data import digest, stage as dataset
 from monolib.graphs import fidelity, stage as scenegraphs
@@ -473,7 +473,7 @@ def write_run_record(study: Study, times: dict, path: Path) -> None:
               "total_seconds": round(sum(times.values()), 1), "cpus": os.cpu_count(),
               "machine": f"{platform.machine()} {platform.processor()}".strip(), "python": platform.python_version(),
               "torch": torch.__version__, "torch_threads": study.threads, "jobs": study.jobs,
-              "date": time.strftime("%Y-%m-%d")}
+              "date": time.strftime("%Y-%m-%d"), "environment": lockfile.environment_record()}
     write_json(path, record)
 
 

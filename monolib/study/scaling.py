@@ -1,4 +1,4 @@
-"""What the grid costs and how it scales: `monolib bench --grid` (`make bench-grid`, writes `figures/scaling.json`).
+"""What the grid costs and how it scales: `monolib bench grid` (`make bench-grid`, writes `figures/scaling.json`).
 
 `measure` runs the cells of a small study (the smoke study by default) from empty cell folders, over the same cached
 dataset, perception and graphs, on three engines: the local path (the study's `jobs` worker processes), a local Dask
@@ -151,7 +151,7 @@ def markdown(record: dict) -> str:
     """The measured cells per minute and the projection, as docs/cluster.md shows them (`figures/scaling.md`)."""
     p = record["projection"]
     lines = [f"**The {record['study']} grid on each engine** ({record['machine']}, {record['cpus']} cores, "
-             f"{record['date']}; {record['threads_per_cell']} torch threads per cell; `monolib bench --grid`)", "",
+             f"{record['date']}; {record['threads_per_cell']} torch threads per cell; `monolib bench grid`)", "",
              "| engine | kernels | workers | cells computed (copied) | seconds | cells per minute | "
              "notebook overhead per cell (s, median) |",
              "|---|---|---:|---:|---:|---:|---:|"]
