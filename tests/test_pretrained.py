@@ -165,7 +165,9 @@ def test_the_localizer_describes_a_frame_as_its_cell_did(smoke, embeddings, meth
     emb, _, _, state = embeddings[method]
     describe = pretrained.describer(method, state)
     got = describe(np.stack([f.rgb for f in sel.test[:4]]))
-    np.testing.assert_allclose(got, emb[:4], atol=1e-5)
+    # the cell read trunk features the features stage computed on its own thread count; the localizer computes them
+    # on this process's: the sums of the convolutions round differently (a few VLAD entries by 3e-4 of their value)
+    np.testing.assert_allclose(got, emb[:4], rtol=1e-3, atol=1e-5)
 
 
 def test_a_frame_without_features_is_an_error_naming_the_file(smoke):
