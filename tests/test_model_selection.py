@@ -72,8 +72,8 @@ def test_runs_of_every_encoder_are_recorded_per_epoch_and_resumed(smoke_study):
     study = load_study("smoke")
     training = ms.Training("smoke test", 1e-3, "constant", 2, (ms.GRAPH, "image_triplet", "imagenet_triplet"))
     configs = (("gcn", 1.0), ("image_triplet", math.inf), ("imagenet_triplet", math.inf))
-    for job in [(m, t, 0, False, training) for m, t in configs]:
-        ms.run_path(study, job, 1).unlink(missing_ok=True)
+    for job in [(m, t, 0, curve, training) for m, t in configs for curve in (False, True)]:
+        ms.run_path(study, job, 1).unlink(missing_ok=True)  # (a run with its curve, left by an earlier session, too)
     df = ms.curves(study, configs, seeds=[0], workers=1, trainings=(training,), families=1)
     assert sorted(df["method"].unique()) == ["gcn", "image_triplet", "imagenet_triplet"]
     assert (df.groupby("method")["epoch"].apply(list) == [[1, 2]] * 3).all()
