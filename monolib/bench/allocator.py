@@ -9,6 +9,7 @@ from pathlib import Path
 
 from monolib import methods
 from monolib.bench.common import written
+from monolib.io import sha256
 from monolib.params import StudyError, load_study
 
 ALLOCATOR_CELL = """
@@ -32,7 +33,6 @@ def allocator_side_by_side(study_name: str = "quick", method: str = "imagenet_tr
     process each, one after the other: with malloc as glibc sets it (``MONOLIB_ALLOCATOR=default``) and with
     `device.keep_freed_memory` (``keep``). Per run: wall, user and system CPU seconds and minor page faults of the
     cell alone; and whether the two wrote the same files, bit for bit. With `out`, also JSON and its Markdown."""
-    import hashlib
     import json
     import os
     import subprocess
@@ -57,7 +57,7 @@ def allocator_side_by_side(study_name: str = "quick", method: str = "imagenet_tr
             run["system_share"] = round(run["system_s"] / max(run["user_s"] + run["system_s"], 1e-9), 3)
             run["page_faults_per_s"] = int(run["page_faults"] / max(run["seconds"], 1e-9))
             record["runs"][mode] = run
-            digests[mode] = {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted(folder.iterdir())
+            digests[mode] = {f.name: sha256(f) for f in sorted(folder.iterdir())
                              if f.suffix in (".npy", ".csv", ".pt")}
             print(f"{method} seed {seed} of {study.name}, MONOLIB_ALLOCATOR={mode}: {run['seconds']:.1f} s "
                   f"(user {run['user_s']:.1f} s, system {run['system_s']:.1f} s), {run['page_faults']:,} page faults",
