@@ -11,7 +11,7 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install lock readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-cell bench-imagenet bench-selection bench-selection-real clean-runs
+.PHONY: install lock readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-cell bench-imagenet bench-selection bench-selection-real data-edits clean-runs
 
 install: $(STAMP)
 
@@ -65,6 +65,14 @@ real: install
 	$(VENV)/bin/monolib unpack $(REAL_DATA) --out runs/published_graphs_dev
 	$(VENV)/bin/monolib study real
 	$(VENV)/bin/monolib study real_full
+
+# which property of the data sets what the edges cost: one property of one leg's graphs moved to the other leg's
+# value at a time, both encoders trained again (params/data_edits.yaml -> figures/data_edits/; run `make direction`
+# and `make real` first). Each leg on its own core, then the tables from both
+data-edits: install
+	$(VENV)/bin/monolib data-edits data_edits --leg mini & pid=$$!; \
+	  $(VENV)/bin/monolib data-edits data_edits --leg real && wait $$pid
+	$(VENV)/bin/monolib data-edits data_edits
 
 # the node colour space (HDR against tonemapped) for gcn and ours in scenarios 1 and 3 (run `make study` first)
 colour: install

@@ -43,7 +43,13 @@ def _study_parsers(sub) -> None:
     p.add_argument("--figures", action="store_true", help="only rewrite figures/zoo.md and zoo_curve.png from the "
                                                           "shipped manifests")
     p = sub.add_parser("fidelity", help="compare a study's ground-truth scene graphs with real Hypersim (fidelity.md)")
-    p.add_argument("study")
+    p.add_argument("study", nargs="?", help="the study to measure (with --reference: optional)")
+    p.add_argument("--reference", metavar="DIR", help="first measure the published graphs' development set in DIR "
+                                                      "(runs/published_graphs_dev) into the reference table")
+    p = sub.add_parser("data-edits", help="the edge penalty with one property of the data changed at a time "
+                                          "(params/data_edits.yaml -> figures/data_edits/)")
+    p.add_argument("study", nargs="?", default="data_edits")
+    p.add_argument("--leg", help="run only this leg's runs, no tables (a second process runs the other leg)")
     p = sub.add_parser("unpack", help="check the published graphs' development set (archive or folder) and put it "
                                       "where params/real.yaml reads it")
     p.add_argument("source", help="published_graphs_dev.tar.xz, or a folder with its train/ folder")
@@ -171,9 +177,25 @@ def _zoo(args) -> int:
     return 0
 
 
+def _data_edits(args) -> int:
+    from monolib.study import data_edits  # deferred: torch
+
+    path = data_edits.main(args.study, leg=args.leg)
+    if path is not None:
+        print(path.read_text(), end="")
+    return 0
+
+
 def _fidelity(args) -> int:
     from monolib.graphs import fidelity  # deferred: torch
 
+    if args.reference:
+        stats = fidelity.write_reference(args.reference)
+        print(f"{fidelity.REFERENCE_CSV}: {len(stats)} statistics of {args.reference} as {fidelity.DEVELOPMENT!r}")
+    if not args.study:
+        if args.reference:
+            return 0
+        raise StudyError("monolib fidelity: name a study (or --reference DIR)")
     spec = load_study(args.study)
     _, table = fidelity.write(spec, fidelity.study_statistics(spec))
     print(table.read_text(), end="")
@@ -260,6 +282,7 @@ def _bench(args) -> int:
 
 
 HANDLERS = {"study": _study, "synth": _synth, "perception": _perception, "zoo": _zoo, "fidelity": _fidelity,
+            "data-edits": _data_edits,
             "unpack": _unpack, "verify": _verify, "index": _index, "localize": _localize, "bench": _bench}
 
 

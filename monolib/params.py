@@ -749,8 +749,11 @@ def find_study(study: str | Path) -> Path:
     else:
         p = paths.PARAMS / f"{study}.yaml"
     if not p.is_file():
-        known = sorted(q.stem for q in paths.PARAMS.glob("*.yaml"))
+        known = [q.stem for q in paths.study_files()]
         raise StudyError(f"{p}: study file not found (studies in params/: {', '.join(known)})")
+    if p.resolve().parent == paths.PARAMS.resolve() and p.name in paths.NOT_STUDIES:
+        raise StudyError(f"{p}: not a study file (params/ holds {', '.join(paths.NOT_STUDIES)} for other commands: "
+                         f"the claims of `monolib verify`, the study of `monolib data-edits`)")
     return p.resolve()
 
 

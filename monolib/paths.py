@@ -12,6 +12,14 @@ NOTEBOOKS = ROOT / "notebooks"
 FIGURES = Path(os.environ.get("MONOLIB_FIGURES", ROOT / "figures"))
 RUNS = Path(os.environ.get("MONOLIB_RUNS", ROOT / "runs"))
 RESOURCES = PACKAGE / "resources"  # the shipped tables and weights
+# params/ files that are not studies: the claims per study (monolib.report.claims) and the data edits' own study
+# file (monolib.study.data_edits)
+NOT_STUDIES = ("claims.yaml", "data_edits.yaml")
+
+
+def study_files() -> list[Path]:
+    """params/*.yaml that are study files (`monolib.params.load_study`), in name order."""
+    return [p for p in sorted(PARAMS.glob("*.yaml")) if p.name not in NOT_STUDIES]
 
 
 def study_dir(study_name: str) -> Path:

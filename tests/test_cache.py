@@ -282,9 +282,7 @@ def test_the_same_seed_gives_the_same_weights_and_sets_deterministic_kernels(stu
 
 
 def test_committed_studies_are_deterministic():
-    for f in sorted(paths.PARAMS.glob("*.yaml")):
-        if f.name == "claims.yaml":  # the README's claims per study (monolib.report.claims), not a study
-            continue
+    for f in paths.study_files():
         assert load_study(str(f), check_files=False).deterministic, f.name
 
 

@@ -110,7 +110,7 @@ def test_empty_inputs_give_nan_not_a_crash(tmp_path, monkeypatch):
     study = dataclasses.replace(load_study("smoke"), name="empty_test")
     _, md = fidelity.write(study, {"this study, train": fidelity.split_statistics([]), "this study, test": stats})
     text = md.read_text()
-    assert ("NaN / NaN / NaN / NaN" in text and "0 of 23 pass" in text
+    assert ("NaN / NaN / NaN / NaN" in text and "0 of 24 pass" in text
             and "wall colour ratio (graph node colours) >= 2.0: NaN FAIL" in text)
     assert "pixel depth, median in [4, 5.6]: NaN FAIL" in text
 
@@ -131,13 +131,13 @@ def test_reference_file_is_read_and_the_tables_are_written(tmp_path, monkeypatch
 
     rows = list(csv.DictReader(csv_path.open()))
     assert {r["source"] for r in rows} == {"this study, train", "this study, test", "real Hypersim, train",
-                                          "real Hypersim, test"}
+                                          "real Hypersim, test", fidelity.DEVELOPMENT}
     value = {(r["statistic"], r["source"]): float(r["value"]) for r in rows}
     assert value[("wall colour ratio", "this study, train")] == pytest.approx(5.0, abs=1e-4)
     assert value[("nodes per graph, mean", "real Hypersim, test")] == 2.8
     md = md_path.read_text()
     assert ("| nodes per graph: mean / median / p10 / p90 | 3.0 / 3 / 3 / 3 | 3.0 / 3 / 3 / 3 | 8.2 / 9 / 3 / 12 "
-            "| 2.8 / 2 / 1 / 6 |") in md
+            "| 2.8 / 2 / 1 / 6 | 8.5 / 9 / 4 / 13 |") in md
     assert "| wall colour sd within / between settings (ratio), node colours (hdr) | 0.20 / 1.00 (5.0) |" in md
     assert ("| wall colour sd within / between settings (ratio), the graphs' node colours (hdr) | NaN / NaN (NaN) |"
             in md)
@@ -165,13 +165,28 @@ def test_acceptance_targets_pass_when_met():
                   "pairs closer than 2 m (monograph)": 0.142, "pairs closer than 5 m (monograph)": 0.6,
                   "pairs closer than 10 m (monograph)": 0.931, "wall HDR colour sd, within settings": 0.47,
                   "wall HDR colour ratio": 2.6, "floor HDR colour sd, within settings": 0.5,
-                  "floor HDR colour ratio": 2.6})  # real Hypersim's own numbers pass
+                  "floor HDR colour ratio": 2.6,
+                  fidelity.SETTING_LIGHT: 1.11})  # real Hypersim's own numbers pass
     assert all(ok for _, ok in fidelity.acceptance(stats))
     stats["label-set Jaccard, across settings"] = 0.41
     assert [ok for _, ok in fidelity.acceptance(stats)].count(False) == 1
     stats["wall HDR colour ratio"] = 10.7  # the mini-Hypersim of 7dc39ec: one wall four times too alike
     stats["pixel depth, median"] = 2.86
     assert [ok for _, ok in fidelity.acceptance(stats)].count(False) == 3
+    stats[fidelity.SETTING_LIGHT] = 0.53  # the mini-Hypersim of quick: every place lit alike
+    assert [ok for _, ok in fidelity.acceptance(stats)].count(False) == 4
+
+
+def test_light_statistics_see_a_place_brighter_than_another():
+    """Two settings whose every node is 4x brighter in one: their light levels differ by log 4, so the sd over the
+    two is log(4) / 2; a lamp 3x the wall."""
+    graphs = [graph(s, [(1, (c, c, c)), (35, (3 * c, 3 * c, 3 * c))]) for s, c in (("ai_001_001", 0.1),
+                                                                                   ("ai_002_001", 0.4))
+              for _ in range(10)]
+    stats = fidelity.split_statistics(graphs)
+    assert stats[fidelity.SETTING_LIGHT] == pytest.approx(math.log(4) / 2)
+    assert stats["lamp brightness / the wall's"] == pytest.approx(3 * 0.25 / 0.25)
+    assert math.isnan(stats["window brightness / the wall's"])
 
 
 def random_split(rng: random.Random, settings: int) -> list[Data]:
@@ -406,3 +421,25 @@ def test_an_exact_study_measures_its_pairs_in_both_cameras(tmp_path, monkeypatch
     assert "| pair length p10 / median / mean / p90 (m), exact camera |" in out
     assert "pixel depth, median in [4, 5.6]: 3.00 FAIL" in out
     assert "wall HDR colour ratio in [2, 4]: 5.0" in out
+
+
+def test_the_development_set_is_measured_into_the_reference_table_and_nothing_else_moves(tmp_path):
+    """`monolib fidelity --reference DIR`: published graph files measured by the study's own statistics, written as
+    one source of the reference table; every other row stays byte for byte, and a second measurement replaces the
+    first."""
+    from test_published import write_folder
+
+    write_folder(tmp_path / "dev" / "train", ["001001", "001002", "002001"], 12, np.random.default_rng(0))
+    table = tmp_path / "reference.csv"
+    table.write_bytes(fidelity.REFERENCE_CSV.read_bytes())
+    before = [line for line in table.read_text().splitlines() if fidelity.DEVELOPMENT not in line]
+    stats = fidelity.write_reference(tmp_path / "dev", table)
+    assert stats["settings"] == 3 and stats["graphs"] == 36 and fidelity.SETTING_LIGHT in stats
+    for k, v in fidelity.split_statistics(published.read_folder(tmp_path / "dev" / "train")).items():
+        assert stats[k] == v or (math.isnan(v) and math.isnan(stats[k])), k
+    first = table.read_text()
+    assert [line for line in first.splitlines() if fidelity.DEVELOPMENT not in line] == before
+    ref = fidelity.read_reference(table)
+    assert ref[fidelity.DEVELOPMENT]["graphs"] == 36 and ref["real Hypersim, train"]["nodes per graph, mean"] == 8.2
+    fidelity.write_reference(tmp_path / "dev", table)
+    assert table.read_text() == first

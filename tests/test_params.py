@@ -42,11 +42,11 @@ def _assert_loaded(loaded, raw, where: str) -> None:
         assert loaded == raw and type(loaded) is type(raw), f"{where}: {loaded!r} != {raw!r}"
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in paths.PARAMS.glob("*.yaml") if p.name != "claims.yaml"))
+@pytest.mark.parametrize("name", [p.stem for p in paths.study_files()])
 def test_committed_studies_load(name):
-    """Each params/<name>.yaml but claims.yaml (the claims per study) loads, names itself <name> (so `monolib study
-    <name>` and its runs/ folder agree), holds every value its file (and the file it extends) writes, and is a grid
-    the runner can run."""
+    """Each study file params/<name>.yaml (`paths.study_files`: not the claims, nor the data edits' file) loads,
+    names itself <name> (so `monolib study <name>` and its runs/ folder agree), holds every value its file (and the
+    file it extends) writes, and is a grid the runner can run."""
     file = paths.PARAMS / f"{name}.yaml"
     raw = yaml.safe_load(file.read_text())
     s = load_study(name, check_files=name in ("smoke", "quick"))

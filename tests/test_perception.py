@@ -1,8 +1,9 @@
 """Perception: DeepLabV3 and the LeReS-style depth net learn, the prediction cache round-trips, degenerate frames
 (all-NaN depth, no labelled pixel) pass through evaluation and the graph-stage readers, and a re-run does no work.
 
-Most tests use a tiny hand-made dataset in the Hypersim layout (`make_tiny_dataset`) under a temporary `runs/`;
-the last one uses the real smoke study (rendered by `monolib.data.synth`) and is skipped when the renderer is absent.
+Every test uses a tiny hand-made dataset in the Hypersim layout (`make_tiny_dataset`) under a temporary `runs/`,
+so that the file runs beside the tests that share the checkout's `runs/` (the smoke study's perception rerun is in
+test_study.py).
 """
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ import torch
 from monolib import io, paths
 from monolib.params import load_study
 
-pytestmark = [pytest.mark.filterwarnings("ignore:.*canonical 60-degree camera"), pytest.mark.shares_runs]
+pytestmark = pytest.mark.filterwarnings("ignore:.*canonical 60-degree camera")
 
 H, W = 48, 64
 CLASSES = {1: (150, 140, 130), 2: (90, 60, 40), 5: (200, 40, 40), 7: (40, 160, 60), 11: (40, 60, 200)}
@@ -575,21 +576,6 @@ def test_bad_prediction_keys_name_the_key(tmp_path, change, message):
 def test_prediction_keys_default_to_the_batch_of_before():
     spec = load_study("smoke").perception
     assert (spec.predict_batch, spec.loader_workers, spec.amp) == (8, 2, True)
-
-
-@pytest.mark.slow
-def test_smoke_study_rerun_is_cached(capsys):
-    """perception.run on the real smoke study, twice: the second run trains and predicts nothing."""
-    pytest.importorskip("monolib.data.synth")
-    from monolib.perception import stage as perception
-
-    study = load_study("smoke")
-    perception.run(study, progress=False)
-    capsys.readouterr()
-    again = perception.run(study, progress=False)
-    out = capsys.readouterr().out
-    assert set(again.attrs["status"].values()) == {"cached"}
-    assert f"perception: {perception.model_tag(study, 'deeplab')} cached" in out and "nothing to do" in out
 
 
 def test_a_depth_network_predicting_nan_is_an_error_not_a_cached_model(tiny_study, monkeypatch):

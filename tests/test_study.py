@@ -421,3 +421,16 @@ def test_graph_sizes_table_of_the_smoke_study(smoke_study):
             assert same == (paths.threshold_tag(copies[name].threshold) if name in copies else ""), name
     md = (fig / "graph_sizes.md").read_text()
     assert md.startswith("**Graph sizes.**") and "| 0 (no edges) |" in md
+
+
+def test_smoke_study_perception_rerun_is_cached(smoke_study, capsys):
+    """perception.run on the real smoke study, twice: the second run trains and predicts nothing."""
+    from monolib.perception import stage as perception
+
+    study = load_study("smoke")
+    perception.run(study, progress=False)
+    capsys.readouterr()
+    again = perception.run(study, progress=False)
+    out = capsys.readouterr().out
+    assert set(again.attrs["status"].values()) == {"cached"}
+    assert f"perception: {perception.model_tag(study, 'deeplab')} cached" in out and "nothing to do" in out

@@ -34,8 +34,10 @@ Geometry and light, like with like:
   themselves or the tonemapped uint8 colours, which divide out each frame's brightness and scale log colour by
   1/2.2) and beside real Hypersim's (whose published node colours are HDR medians).
 
-The real Hypersim numbers cannot be computed here (the published files are not available); they are transcribed
-from the doc into `monolib/resources/fidelity_reference.csv`. `write(study)` puts `fidelity.csv` (long format:
+The real Hypersim numbers of the whole release are transcribed from the doc into
+`monolib/resources/fidelity_reference.csv` (its files are not all available); those of the published graphs'
+development set are measured here by the same code (`write_reference`, `monolib fidelity --reference DIR`), the
+source `DEVELOPMENT` of the same table. `write(study)` puts `fidelity.csv` (long format:
 statistic, source, value) and `fidelity.md` (the doc's table, the label frequencies and the acceptance targets for the
 generator) into `paths.figures_dir(study.name)`. Whatever cannot be measured (no settings, a label never seen)
 is NaN.
@@ -53,7 +55,7 @@ import numpy as np
 
 from monolib import paths
 from monolib.data import labels, stage as dataset
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import edits, published, stage as scenegraphs
 from monolib.io import DataFileError, read_h5, write_text
 from monolib.params import Study, StudyError
 
@@ -63,6 +65,9 @@ PAIRS = 4000             # random frame pairs for the label-set Jaccard
 SEED = 0
 COLOUR_FLOOR = 1e-3
 COLOUR_LABELS = (("wall", 1), ("floor", 2))
+LIGHT_LABELS = (("lamp", 35), ("ceiling", 22), ("window", 9))  # brightness against the wall's (`light_statistics`)
+SETTING_LIGHT = "settings' light levels, sd of log brightness"
+DEVELOPMENT = "real Hypersim, development set"  # the published graphs' development volumes (`reference_statistics`)
 TOP_LABELS = 20
 REFERENCE_CSV = paths.RESOURCES / "fidelity_reference.csv"
 SPLITS = ("train", "test")
@@ -93,6 +98,10 @@ TARGET_RANGES = {
     "pairs closer than 5 m (monograph)": (0.48, 0.72), "pairs closer than 10 m (monograph)": (0.86, 0.97),
     "wall HDR colour sd, within settings": (0.30, math.inf), "wall HDR colour ratio": (2.0, 4.0),
     "floor HDR colour sd, within settings": (0.30, math.inf), "floor HDR colour ratio": (2.0, 4.0),
+    # how much brighter or darker one place is than another, every object of it alike: real places differ about
+    # twice as much as the mini-Hypersim's (figures/data_edits/ measures what that does to the edge penalty); the
+    # development set's value in fidelity_reference.csv, the range a quarter either side of it
+    SETTING_LIGHT: (0.85, 1.4),
 }
 
 
@@ -159,6 +168,21 @@ def split_statistics(graphs: list, pairs: int = PAIRS, seed: int = SEED) -> dict
 
     # colour distinctiveness of walls and floors
     stats.update(colour_statistics(node_label, node_colour, node_frame, np.repeat(np.arange(len(settings)), count)))
+    stats.update(light_statistics([graphs[i] for i in used]))
+    return stats
+
+
+def light_statistics(graphs: list) -> dict[str, float]:
+    """How light differs between places and between kinds of object, from the graphs' node colours: the spread (sd
+    over settings) of the settings' light levels once each label's own level is taken out (`edits.light_effects`: an
+    additive fit of every node's log brightness), and the median brightness of lamps, ceilings and windows against
+    the walls' (`edits.light_ratios`)."""
+    nan = float("nan")
+    setting, _ = edits.light_effects(graphs)
+    ratios = edits.light_ratios(graphs)
+    stats = {SETTING_LIGHT: float(np.std(list(setting.values()))) if len(setting) >= 2 else nan}
+    for name, label_id in LIGHT_LABELS:
+        stats[f"{name} brightness / the wall's"] = ratios.get(label_id, nan)
     return stats
 
 
@@ -344,6 +368,32 @@ def study_statistics(study: Study) -> dict[str, dict[str, float]]:
     return out
 
 
+def reference_statistics(folder: str | Path) -> dict[str, float]:
+    """The scene-graph and light statistics (`split_statistics`) and node pairs (`pair_statistics`) of the published
+    real graphs in `folder` (the development set: its ``train/`` of ai_VVV_NNN_XX_graphs.pt files), measured here
+    as on a study's graphs."""
+    folder = Path(folder)
+    graphs = published.read_folder(folder / "train" if (folder / "train").is_dir() else folder)
+    stats = split_statistics(graphs)
+    stats.update(pair_statistics(light_sample(graphs), MONOGRAPH))
+    return stats
+
+
+def write_reference(folder: str | Path, path: str | Path = REFERENCE_CSV) -> dict[str, float]:
+    """Measure `reference_statistics` of `folder` and put them into the reference table as the source
+    `DEVELOPMENT` (its earlier rows replaced; every other source's rows kept as they are)."""
+    stats = reference_statistics(folder)
+    path = Path(path)
+    lines = path.read_text().splitlines(keepends=True)
+    kept = [line for line in lines[1:] if next(csv.reader([line]))[1] != DEVELOPMENT]  # other sources: as written
+    citation = (f"measured by `monolib fidelity --reference` on the published graphs' development set "
+                f"({int(stats['settings'])} settings of volumes ai_001-ai_019 of the release's train/)")
+    text = io.StringIO()
+    csv.writer(text, lineterminator="\n").writerows([k, DEVELOPMENT, f"{v:.6g}", citation] for k, v in stats.items())
+    write_text(path, "".join(lines[:1] + kept) + text.getvalue())
+    return stats
+
+
 def read_reference(path: str | Path = REFERENCE_CSV) -> dict[str, dict[str, float]]:
     """{source: {statistic: value}} of the real Hypersim numbers transcribed from the doc."""
     out: dict[str, dict[str, float]] = {}
@@ -497,6 +547,14 @@ def markdown(study_name: str, sources: dict[str, dict[str, float]], colour: str 
               f"graphs' node colours of those frames (`{colour}`: {COLOUR_SPACES[colour]}). Real Hypersim's node "
               "colours are HDR medians: its rows are one measurement.", ""]
     lines += table(light_rows) + [""]
+    lines += ["Light between places and between kinds of object, from the graphs' node colours (all frames of the "
+              "settings used): the spread of the settings' light levels (sd over settings of each setting's level, "
+              "once each label's own level is taken out of every node's log brightness) and the median brightness "
+              "of lamps, ceilings and windows against the walls'. What each does to the cost of the edges: "
+              "figures/data_edits/data_edits.md (`make data-edits`).", ""]
+    lines += table([(SETTING_LIGHT, lambda st: _cells(st, [SETTING_LIGHT], 2)),
+                    (" / ".join(n for n, _ in LIGHT_LABELS) + " median brightness / the wall's",
+                     lambda st: _cells(st, [f"{n} brightness / the wall's" for n, _ in LIGHT_LABELS], 2))]) + [""]
     for src, stats in sources.items():
         if any(key.startswith("label frequency, ") for key in stats):
             lines += [f"Label frequency, {src} (share of graphs): {frequency_line(stats)}.", ""]
