@@ -18,7 +18,7 @@ measures the penalty again: a property that sets the penalty moves it toward the
 A leg's statistics are measured on the training and validation graphs of its first run (the first fold of a
 study split by volume), the other leg's target the same way. Every (leg, edit, method, threshold, seed[, fold]) is a
 run whose result file (`runs/data_edits/...json`, atomic, keyed like a cell) makes a rerun resume; the tables
-(`write_report`) pair each run with the edit-free run and the 0 m run of the same fold and seed, on the same queries:
+(`monolib.report.data_edits`) pair each run with the edit-free run and the 0 m run of the same fold and seed, on the same queries:
 95% intervals from a bootstrap over runs and, within each, over test settings (`paired_intervals`).
 """
 from __future__ import annotations
