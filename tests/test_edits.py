@@ -144,3 +144,16 @@ def test_the_penalty_and_the_edits_change_are_paired_differences(tmp_path):
     none = table[(table.leg == "a") & (table.edit == "none")].iloc[0]
     assert none.penalty == -50.0 and none.change == 0.0 and none.change_lo == none.change_hi == 0.0
     assert row.penalty_lo <= row.penalty <= row.penalty_hi and not math.isnan(row.change_lo)
+
+
+def test_the_command_says_error_and_exits_2_on_a_bad_file_or_leg(tmp_path, capsys):
+    from monolib import cli
+
+    bad = write(tmp_path, GOOD.replace("seeds: [0]", "seeds: [0]\nlight: on"))
+    assert cli.main(["data-edits", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and str(bad) in err and "unknown keys ['light']" in err and err.count("\n") == 1
+    assert cli.main(["data-edits", str(write(tmp_path, GOOD)), "--leg", "c"]) == 2
+    assert "leg 'c': not in legs (a, b)" in capsys.readouterr().err
+    assert cli.main(["data-edits", str(write(tmp_path, GOOD))]) == 2  # smoke is not split by volume
+    assert "legs.b.folds: [0], but" in capsys.readouterr().err

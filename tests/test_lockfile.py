@@ -45,9 +45,11 @@ def test_what_cannot_be_locked_or_read_is_one_error_naming_it(tmp_path):
 def test_the_committed_lock_holds_every_dependency_and_this_environment_is_it():
     locked = lockfile.locked_versions()
     tomllib = pytest.importorskip("tomllib")
+    from packaging.requirements import Requirement  # (pip's and pytest's dependency: in every environment here)
+
     project = tomllib.loads((paths.ROOT / "pyproject.toml").read_text())["project"]
     wanted = project["dependencies"] + project["optional-dependencies"]["test"]
-    names = {lockfile.normalise(d.split("=")[0].split(">")[0].split("<")[0].split("[")[0].strip()) for d in wanted}
+    names = {lockfile.normalise(Requirement(d).name) for d in wanted}  # the name, without extras, markers or pins
     assert names <= set(locked), sorted(names - set(locked))
     assert locked["torch"] == "2.14.1" and locked["torchvision"] == "0.29.1"
     if lockfile.usable() is not None:

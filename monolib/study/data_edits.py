@@ -18,8 +18,8 @@ measures the penalty again: a property that sets the penalty moves it toward the
 A leg's statistics are measured on the training and validation graphs of its first run (the first fold of a
 study split by volume), the other leg's target the same way. Every (leg, edit, method, threshold, seed[, fold]) is a
 run whose result file (`runs/data_edits/...json`, atomic, keyed like a cell) makes a rerun resume; the tables
-(`monolib.report.data_edits`) pair each run with the edit-free run and the 0 m run of the same fold and seed, on the same queries:
-95% intervals from a bootstrap over runs and, within each, over test settings (`paired_intervals`).
+(`monolib.report.data_edits`) pair each run with the edit-free run and the 0 m run of the same fold and seed, on
+the same queries: 95% intervals from a bootstrap over runs and, within each, over test settings.
 """
 from __future__ import annotations
 
@@ -194,10 +194,16 @@ def one_run(study: Study, scenario: str, graphs: dict[str, list], method: str, t
 def run(es: EditStudy, progress: bool = True, only: Optional[str] = None) -> pd.DataFrame:
     """Every run of the study (those done before are read back): one row per run with its recall@1. `only`: the
     runs of that leg alone (two processes, one per leg, use two cores; the tables need both)."""
+    if only is not None and only not in es.legs:
+        raise StudyError(f"{es.path}: leg {only!r}: not in legs ({', '.join(es.legs)})")
     code = code_version()
     rows = []
     studies = {leg: load_study(spec.study) for leg, spec in es.legs.items()}
-    for s in studies.values():
+    for leg, spec in es.legs.items():
+        s = studies[leg]
+        if spec.folds and s.protocol.split != "volumes":
+            raise StudyError(f"{es.path}: legs.{leg}.folds: {spec.folds}, but {s.path} is not split into folds "
+                             f"(protocol.split: {s.protocol.split}); leave folds out")
         unknown = [m for m in es.methods if m != "gcn" and m not in s.variants]
         if unknown:
             raise StudyError(f"{es.path}: methods: {unknown} are not graph encoders of {s.path} (its variants: "
@@ -205,8 +211,6 @@ def run(es: EditStudy, progress: bool = True, only: Optional[str] = None) -> pd.
     first = {leg: leg_graphs(studies[leg], es.scenario, (spec.folds or [None])[0]) for leg, spec in es.legs.items()}
     stats = {leg: statistics(g) for leg, g in first.items()}
     cells = [("gcn", 0.0)] + [(m, t) for t in es.thresholds for m in es.methods]
-    if only is not None and only not in es.legs:
-        raise StudyError(f"{es.path}: leg {only!r}: not in legs ({', '.join(es.legs)})")
     for leg, spec in es.legs.items():
         if only is not None and leg != only:
             continue
