@@ -11,6 +11,18 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def pytest_configure(config):
+    """Each worker process of `make test` (pytest-xdist) computes on one thread, and so do the processes it starts
+    unless a study sets its own: two workers on two cores, each with torch's default of a thread per core,
+    oversubscribe them, and a training step then waits on threads that are not running (the zoo's resume test took
+    11 s alone and 64 s beside the other worker)."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        os.environ["OMP_NUM_THREADS"] = "1"
+        import torch
+
+        torch.set_num_threads(1)
+
+
 @pytest.fixture(scope="session")
 def smoke_dataset(tmp_path_factory):
     """The smoke study's mini-Hypersim, rendered once per test session (monolib.data.synth); returns its root Path."""
