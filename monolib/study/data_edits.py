@@ -218,7 +218,7 @@ def run(es: EditStudy, progress: bool = True, only: Optional[str] = None) -> pd.
         study = studies[leg]
         torch.set_num_threads(study.threads)
         for fold in spec.folds or [None]:
-            graphs = leg_graphs(study, es.scenario, fold)
+            graphs = first[leg] if fold == (spec.folds or [None])[0] else leg_graphs(study, es.scenario, fold)
             for edit in es.edits:
                 edited = None
                 for method, threshold in cells:
