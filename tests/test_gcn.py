@@ -244,6 +244,64 @@ def test_the_sparse_adjacency_gives_what_gcnconv_computes_from_the_edge_list(edg
     assert torch.allclose(got, want, atol=1e-5), (got - want).abs().max()
 
 
+def test_the_adjacency_is_built_as_coalesce_would_and_its_backward_is_autograds_bit_for_bit():
+    """`csr_of` holds the arrays of ``sparse_coo_tensor(...).coalesce().to_sparse_csr()`` (repeated entries
+    summed), and `SparseProduct`'s gradient (the transpose built once per batch) is autograd's own through
+    `torch.sparse.mm`, bit for bit, with and without the transpose given; a training step's weights likewise."""
+    import warnings
+
+    from torch_geometric.data import Batch
+    from torch_geometric.nn.conv.gcn_conv import gcn_norm
+
+    from monolib.retrieval import gcn
+
+    warnings.simplefilter("ignore", UserWarning)  # "Sparse CSR tensor support is in beta"
+    g = torch.Generator().manual_seed(0)
+    for n, e in [(1, 0), (7, 12), (40, 300), (300, 2000)]:
+        ei = torch.randint(0, n, (2, e), generator=g)
+        ei = torch.unique(ei[:, ei[0] != ei[1]], dim=1)
+        index, value = gcn_norm(ei, None, n, False, True, "source_to_target", torch.float32)
+        want = torch.sparse_coo_tensor(index.flip(0), value, (n, n)).coalesce().to_sparse_csr()
+        got = gcn.csr_of(index[1], index[0], value, n)
+        for a, b in [(got.crow_indices(), want.crow_indices()), (got.col_indices(), want.col_indices()),
+                     (got.values(), want.values())]:
+            assert torch.equal(a, b), (n, e)
+        x = torch.randn(n, 16, generator=g, requires_grad=True)
+        grad = torch.randn(n, 16, generator=g)
+        torch.sparse.mm(want, x).backward(grad)
+        reference, x.grad = x.grad, None
+        for transposed in (gcn.csr_of(index[0], index[1], value, n), None):
+            out = gcn.SparseProduct.apply(got, transposed, x)
+            assert torch.equal(out, torch.sparse.mm(want, x.detach()))
+            out.backward(grad)
+            assert torch.equal(x.grad, reference), (n, e, transposed is None)
+            x.grad = None
+    repeated = gcn.csr_of(torch.tensor([0, 0, 1]), torch.tensor([1, 1, 0]), torch.tensor([1.0, 2.0, 3.0]), 2)
+    assert torch.equal(repeated.to_dense(), torch.tensor([[0.0, 3.0], [3.0, 0.0]]))
+
+    # one training step of the encoder, through GCNConv's own forward (autograd's backward) and through ours
+    batch = Batch.from_data_list(toy_graphs(3, 2))
+    steps = []
+    for ours in (True, False):
+        torch.manual_seed(0)
+        model = GraphEncoder(GCNSpec())
+        opt = torch.optim.Adam(model.parameters(), lr=0.01)
+        if not ours:
+            adjacency = gcn.normalised_adjacency(batch.edge_index, None, batch.num_nodes, torch.float32)
+            h = model.features(batch.x)
+            for i, conv in enumerate(model.convs):
+                h = conv(h, adjacency.matrix)
+                h = h.relu() if i < len(model.convs) - 1 else h
+            from torch_geometric.nn import global_max_pool
+            z = global_max_pool(h, batch.batch)
+        else:
+            z = model(batch)
+        z.square().sum().backward()
+        opt.step()
+        steps.append([p.detach().clone() for p in model.parameters()])
+    assert all(torch.equal(a, b) for a, b in zip(*steps))
+
+
 def test_the_edge_list_path_of_devices_without_sparse_products_gives_the_same_embeddings(monkeypatch):
     """Where torch has no sparse CSR product (`meta`, some backends) the encoder propagates over the edge list with
     the same normalised weights: the same embeddings up to float rounding."""

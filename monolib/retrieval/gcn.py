@@ -99,18 +99,70 @@ SPARSE_DEVICES = ("cpu", "cuda")  # where torch multiplies a sparse CSR matrix (
 def normalised_adjacency(edge_index: torch.Tensor, weight: Optional[torch.Tensor], num_nodes: int,
                          dtype: torch.dtype) -> tuple:
     """GCNConv's normalised adjacency (self-loops added, D^-1/2 A D^-1/2: PyG's own `gcn_norm`), computed once per
-    batch for all five layers instead of once per layer: the arguments of each layer after the features. Where
-    torch has sparse products (`SPARSE_DEVICES`) a sparse CSR matrix, transposed as PyG's `adj_t`, and each layer's
+    batch for all five layers instead of once per layer. Where torch has sparse products (`SPARSE_DEVICES`) an
+    `Adjacency` (sparse CSR, transposed as PyG's `adj_t`, and its transpose when gradients are on): each layer's
     propagation is one sparse-dense product instead of a gather and a scatter over the edges (a quick cell trains in
     about 0.65 of the time; its sums run in another order than the scatter's, so the weights differ from the
-    edge-list path in the last bits, and are as reproducible); elsewhere the edge list and its weights."""
+    edge-list path in the last bits, and are as reproducible); elsewhere the edge list and its weights, as a tuple
+    of GCNConv's arguments after the features."""
     index, value = gcn_norm(edge_index, weight, num_nodes, False, True, "source_to_target", dtype)
     if index.device.type not in SPARSE_DEVICES:
         return index, value
     with warnings.catch_warnings():  # "Sparse CSR tensor support is in beta": CSR @ dense and its backward are used
         warnings.simplefilter("ignore", UserWarning)
-        return (torch.sparse_coo_tensor(index.flip(0), value, (num_nodes, num_nodes),
-                                        check_invariants=False).coalesce().to_sparse_csr(),)
+        transposed = csr_of(index[0], index[1], value, num_nodes) if torch.is_grad_enabled() else None
+        return Adjacency(csr_of(index[1], index[0], value, num_nodes), transposed)
+
+
+@dataclass
+class Adjacency:
+    """A batch's normalised adjacency as sparse CSR (`matrix`: row = target, column = source) and, for training,
+    its transpose (`transposed`), built once per batch for the five layers' backward passes."""
+    matrix: torch.Tensor
+    transposed: Optional[torch.Tensor] = None
+
+
+class SparseProduct(torch.autograd.Function):
+    """``matrix @ x`` for a constant sparse CSR `matrix`, with the gradient ``transposed @ grad``: the same products
+    as autograd's own backward of `torch.sparse.mm` (which transposes the matrix to CSR again at every layer of
+    every step, a quarter of a quick cell's training), bit for bit (tests/test_gcn.py)."""
+
+    @staticmethod
+    def forward(ctx, matrix: torch.Tensor, transposed: Optional[torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+        ctx.matrix, ctx.transposed = matrix, transposed
+        return torch.sparse.mm(matrix, x)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        t = ctx.transposed if ctx.transposed is not None else ctx.matrix.t().to_sparse_csr()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            return None, None, torch.sparse.mm(t, grad)
+
+
+def gcn_layer(conv: GCNConv, h: torch.Tensor, adjacency) -> torch.Tensor:
+    """`conv` (a GCNConv without normalisation) on node features `h`: its own forward on an edge list; on an
+    `Adjacency`, the same operations written out (its linear map, the sparse product, its bias), so that the
+    product's backward is `SparseProduct`'s."""
+    if not isinstance(adjacency, Adjacency):
+        return conv(h, *adjacency)
+    out = SparseProduct.apply(adjacency.matrix, adjacency.transposed, conv.lin(h))
+    return out + conv.bias if conv.bias is not None else out
+
+
+def csr_of(row: torch.Tensor, col: torch.Tensor, value: torch.Tensor, n: int) -> torch.Tensor:
+    """The (n, n) sparse CSR matrix with `value` at (`row`, `col`): the arrays of
+    ``sparse_coo_tensor(...).coalesce().to_sparse_csr()``, entries in (row, column) order, built by one sort
+    instead of a coalesce and a conversion. Repeated (row, column) pairs are summed, as coalesce does (through it:
+    the graphs hold each pair once, and self-loops only as `gcn_norm` adds them)."""
+    key = row * n + col
+    key, order = torch.sort(key, stable=True)
+    if key.numel() > 1 and bool((key[1:] == key[:-1]).any()):
+        return torch.sparse_coo_tensor(torch.stack([row, col]), value, (n, n),
+                                       check_invariants=False).coalesce().to_sparse_csr()
+    crow = torch.zeros(n + 1, dtype=torch.long, device=row.device)
+    crow[1:] = torch.cumsum(torch.bincount(row, minlength=n), 0)
+    return torch.sparse_csr_tensor(crow, col[order], value[order], (n, n), check_invariants=False)
 
 
 def encoder_graph(g: Data, threshold: float, spec: GCNSpec, projection: Optional[str]) -> Data:
@@ -257,7 +309,7 @@ class GraphEncoder(nn.Module):
             if self.spec.conv in ("gine", "gatv2", "transformer"):
                 h = conv(h, batch.edge_index, edges)
             else:
-                h = conv(h, *adjacency)
+                h = gcn_layer(conv, h, adjacency)
             if i < len(self.convs) - 1 or self.lin is not None:  # no ReLU on a last conv that maps to the output
                 h = h.relu()
         if self.lin is not None:
