@@ -1,17 +1,23 @@
-"""Write `tests/smoke_expected.yaml` from the smoke study's figures: `python tests/refresh_smoke_expected.py`.
+"""Record this machine's smoke numbers in `tests/smoke_expected.yaml`: `python tests/refresh_smoke_expected.py`.
 
-`monolib study smoke` first (or `make smoke`). The file holds the means that
-`tests/test_study.py::test_smoke_numbers_within_their_cross_machine_bands` holds to bands; when a change of the code
-changes them on purpose, run this and review the diff before committing it.
+`monolib study smoke` first (or `make smoke`). The file holds, per CPU (`monolib.device.cpu_signature`), the means
+that `tests/test_study.py::test_smoke_numbers_within_their_cross_machine_bands` holds to bands: from 12.5 points
+below the lowest machine's number to 12.5 above the highest (0.05 for a perception metric). This machine's entry is
+replaced and every other machine's kept, so the bands span every CPU the smoke study has run on. When a change of
+the code changes the numbers on purpose, run it with ``--only-this-machine`` (the other machines' numbers are then
+stale, and dropped) and review the diff before committing it.
 """
 from __future__ import annotations
 
+import datetime
 import math
+import sys
 
 import pandas as pd
 import yaml
 
 from monolib import paths
+from monolib.device import cpu_signature
 from monolib.io import write_text
 
 EXPECTED = paths.ROOT / "tests" / "smoke_expected.yaml"
@@ -23,6 +29,9 @@ TABLE_ROWS = {  # (table, scenario, threshold, k) that carry the smoke study's s
 }
 PERCEPTION_ROWS = [("deeplab", "pixel_accuracy"), ("depth_a", "abs_rel"), ("depth_a", "delta1"),
                    ("depth_b", "abs_rel"), ("depth_b", "delta1")]
+HEADER = ("# The smoke study's numbers on each CPU it has run on, written by tests/refresh_smoke_expected.py from\n"
+          "# `monolib study smoke`; tests/test_study.py holds a rerun to bands around them (12.5 points below the\n"
+          "# lowest machine's number and above the highest, 0.05 of a perception metric).\n")
 
 
 def measured(figures=None) -> dict:
@@ -46,8 +55,15 @@ def measured(figures=None) -> dict:
     return out
 
 
+def recorded(machines: list[dict], only_this_machine: bool = False, figures=None) -> list[dict]:
+    """`machines` with this machine's entry (`cpu_signature`, today's date, `measured`) in place of its old one."""
+    cpu = cpu_signature()
+    kept = [] if only_this_machine else [m for m in machines if m["cpu"] != cpu]
+    return kept + [{"cpu": cpu, "date": datetime.date.today().isoformat(), **measured(figures)}]
+
+
 if __name__ == "__main__":
-    header = ("# The smoke study's numbers, written by tests/refresh_smoke_expected.py from `monolib study smoke`;\n"
-              "# tests/test_study.py holds a rerun to bands around them (12.5 points, 0.05 of a perception metric).\n")
-    write_text(EXPECTED, header + yaml.safe_dump(measured(), sort_keys=False))
-    print(f"wrote {EXPECTED}")
+    old = yaml.safe_load(EXPECTED.read_text())["machines"] if EXPECTED.is_file() else []
+    machines = recorded(old, "--only-this-machine" in sys.argv[1:])
+    write_text(EXPECTED, HEADER + yaml.safe_dump({"machines": machines}, sort_keys=False))
+    print(f"wrote {EXPECTED}: {len(machines)} machine(s)")

@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from monolib import io
+from monolib.device import cpu_signature
 from monolib.io import write_json
 
 
@@ -32,7 +33,8 @@ def device_name(dev: torch.device) -> str:
 
 
 def cpu_name() -> str:
-    return device_name(torch.device("cpu")).removeprefix("cpu: ")
+    """The CPU as benchmarks name it: model name, family, model and widest vector unit (`cpu_signature`)."""
+    return cpu_signature()
 
 
 def written(record: dict, out: str | None, table) -> dict:
