@@ -21,8 +21,8 @@ from monolib import paths
 # The modules whose code decides each stage's output (the stage's own module and the ones it computes with).
 STAGE_MODULES = {
     "dataset": ["data.stage", "data.synth", "data.synth.materials", "data.synth.furniture", "data.synth.rooms",
-                "data.synth.mesh", "data.synth.render", "data.synth.cameras", "data.synth.setting",
-                "data.synth.dataset", "data.hypersim", "data.exact", "data.labels"],
+                "data.synth.mesh", "data.synth.raycast", "data.synth.render", "data.synth.cameras",
+                "data.synth.setting", "data.synth.dataset", "data.hypersim", "data.exact", "data.labels"],
     "perception": ["perception.stage", "perception.images", "perception.segmentation", "perception.depth",
                    "perception.imagenet", "perception.zoo", "perception.manifests", "perception.weights", "data.stage",
                    "data.selection", "data.folds", "data.protocols", "data.hypersim", "data.exact", "data.labels"],

@@ -87,3 +87,72 @@ def test_exact_arithmetic_agrees_with_numpy_to_the_last_bits():
     T[:3, :3] = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     T[:3, 3] = rng.normal(size=3)
     np.testing.assert_allclose(exact.rigid_inverse(T), np.linalg.inv(T), atol=1e-14)
+
+
+SETTING = """
+import json, sys
+from pathlib import Path
+from monolib.data import digest
+from monolib.data.synth import dataset, raycast
+from monolib.params import load_study
+isa = None if sys.argv[3] == "default" else sys.argv[3]
+raycast.ISA = isa
+study = load_study(Path("params/quick.yaml"))
+s = next(s for s in dataset.plan(study) if s["name"] == sys.argv[1])
+key = dataset._setting_key(s, study)
+dataset.render_setting(s, key, int(study.dataset.width), int(study.dataset.height), int(study.seed),
+                       Path(sys.argv[2]) / s["name"])
+print(json.dumps(digest.digest(sys.argv[2])["settings"][s["name"]]["kinds"]))
+"""
+
+
+def render_quick_setting(name: str, out: Path, isa: str) -> dict:
+    """One setting of the quick study rendered in a fresh interpreter with Embree's `isa` kernels ("default":
+    Embree's choice for this CPU): the sha256 of each kind of file it wrote."""
+    res = subprocess.run([sys.executable, "-c", SETTING, name, str(out), isa], cwd=ROOT, capture_output=True,
+                         text=True, timeout=600, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def test_a_quick_setting_renders_to_the_committed_digest_on_this_cpu(tmp_path):
+    """The committed digest of quick's dataset was rendered on another CPU: this CPU's render of one setting gives
+    the same bytes, file kind by file kind (the setting's marker aside: it holds the code version). With Embree's own
+    choice of kernels on an AVX-512 CPU it does not (measured on the AMD EPYC of Zen 4: docs/reproducibility.md)."""
+    from monolib.data.synth import raycast
+
+    if not raycast.cpu_has_isa():
+        pytest.skip("this CPU has no AVX2: Embree runs its default kernels here")
+    committed = json.loads((ROOT / "figures" / "dataset_digest.json").read_text())["settings"]
+    name = "ai_916_001"  # a training setting of 20 frames
+    fresh = render_quick_setting(name, tmp_path, raycast.ISA)
+    marker = "monolib_synth_setting.json"
+    want = {k: v for k, v in committed[name]["kinds"].items() if k != marker}
+    got = {k: v for k, v in fresh.items() if k != marker}
+    assert got == want, f"{name}: {sorted(k for k in set(want) | set(got) if want.get(k) != got.get(k))} differ"
+
+
+def test_the_ray_caster_runs_embree_on_the_pinned_kernels_and_threads_do_not_change_its_hits():
+    """Embree's own report (verbose=1) of the ISA of the caster's device; and the same rays hit the same triangles
+    on one thread and on every core."""
+    import numpy as np
+
+    from monolib.data.synth import raycast
+
+    if not raycast.cpu_has_isa():
+        pytest.skip("this CPU has no AVX2")
+    code = "from monolib.data.synth import raycast; raycast.device(raycast.ISA, 'verbose=1')"
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(ROOT)})
+    config = res.stdout.split("Config", 1)[1].split("Targets", 1)[0]
+    assert " AVX2 " in config and "AVX512" not in config, config
+    rng = np.random.default_rng(0)
+    v = rng.uniform(-1, 1, (3000, 3))
+    f = rng.integers(0, 3000, (1000, 3))
+    o = rng.uniform(-0.1, 0.1, (20000, 3))
+    d = rng.normal(size=(20000, 3))
+    one, every = raycast.RayCaster(v, f, config="threads=1"), raycast.RayCaster(v, f)
+    hits = one.first(o, d)
+    assert (hits >= 0).mean() > 0.5 and np.array_equal(hits, every.first(o, d))
+    dist = rng.uniform(0.1, 2, 20000)
+    assert np.array_equal(one.occluded(o, d, dist), every.occluded(o, d, dist))

@@ -58,3 +58,26 @@ def test_verify_compares_the_dataset_first_and_names_what_differs(tmp_path):
     assert v.lines()[0].startswith("dataset: differs from the committed one in 1 place(s)")
     (fresh / digest.FILE).unlink()
     assert "missing" in verify.compare("nostudy", fresh, committed).problems[0]
+
+
+def test_a_setting_whose_marker_alone_differs_holds_the_same_data(tmp_path):
+    """The marker holds the key (code and library versions) a setting was rendered under: new code that renders the
+    same files is information for `verify`, not a problem; a changed file next to it is one."""
+    committed, fresh = tmp_path / "committed", tmp_path / "fresh"
+    for folder in (committed, fresh):
+        folder.mkdir()
+    data = hypersim_tree(tmp_path / "data")
+    marker = data / "ai_900_002" / "_detail" / digest.MARKER
+    marker.write_text('{"key": {"code": "a"}}')
+    write_json(committed / digest.FILE, digest.digest(data))
+    marker.write_text('{"key": {"code": "b"}}')
+    write_json(fresh / digest.FILE, digest.digest(data))
+    a, b = digest.read(committed / digest.FILE), digest.read(fresh / digest.FILE)
+    assert a["sha256"] != b["sha256"] and digest.differences(a, b) == [] and digest.markers_only(a, b) == ["ai_900_002"]
+    v = verify.compare("nostudy", fresh, committed)
+    assert v.ok and "every rendered file identical" in v.lines()[0] and "markers of 1 settings differ" in v.lines()[0]
+    (data / "ai_900_002" / "_detail" / "metadata_cameras.csv").write_text("camera_name\ncam_01\n")
+    write_json(fresh / digest.FILE, digest.digest(data))
+    v = verify.compare("nostudy", fresh, committed)
+    assert v.problems == ["dataset: setting ai_900_002: metadata_cameras.csv (1 file), "
+                          "monolib_synth_setting.json (1 file) differ"]

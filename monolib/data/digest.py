@@ -7,8 +7,10 @@ name), one per setting, one per file at the top level, and one for the whole. A 
 the files' hashes, so a renamed or missing file changes it as a changed byte does.
 
 `differences(committed, fresh)` names what differs between two digests: the settings, and in each the kinds of
-file (and how many files of each). The module lies outside the dataset stage's hashed modules
-(`monolib.versions.STAGE_MODULES`): it reads the stage's files and never changes them.
+file (and how many files of each). A setting whose rendered files are all the same and whose marker alone differs
+(``_detail/monolib_synth_setting.json``: the key of the code and library versions that rendered it) holds the
+same data: `markers_only` names those, and `differences` leaves them out. The module lies outside the dataset
+stage's hashed modules (`monolib.versions.STAGE_MODULES`): it reads the stage's files and never changes them.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from pathlib import Path
 from monolib.io import read_json, sha256
 
 FILE = "dataset_digest.json"   # in the study's figures folder
+MARKER = "monolib_synth_setting.json"  # a setting's marker: the key it was rendered under, not data
 _FRAME_FILE = re.compile(r"^frame\.\d+\.(.+)$")
 
 
@@ -89,8 +92,20 @@ def differences(committed: dict, fresh: dict) -> list[str]:
         elif name not in old:
             lines.append(f"setting {name}: not in the committed dataset")
         elif old[name]["sha256"] != new[name]["sha256"]:
-            ko, kn = old[name]["kinds"], new[name]["kinds"]
-            kinds = [_kind_files(k, kn.get(k, {}).get("files", 0)) for k in sorted(set(ko) | set(kn))
-                     if ko.get(k, {}).get("sha256") != kn.get(k, {}).get("sha256")]
-            lines.append(f"setting {name}: {', '.join(kinds)} differ")
+            kinds = _kinds_that_differ(old[name]["kinds"], new[name]["kinds"])
+            if kinds != [MARKER]:
+                kn = new[name]["kinds"]
+                named = ", ".join(_kind_files(k, kn.get(k, {}).get("files", 0)) for k in kinds)
+                lines.append(f"setting {name}: {named} differ")
     return lines
+
+
+def _kinds_that_differ(ko: dict, kn: dict) -> list[str]:
+    return [k for k in sorted(set(ko) | set(kn)) if ko.get(k, {}).get("sha256") != kn.get(k, {}).get("sha256")]
+
+
+def markers_only(committed: dict, fresh: dict) -> list[str]:
+    """The settings in both digests whose marker alone differs: the same rendered files, under another key."""
+    old, new = committed.get("settings", {}), fresh.get("settings", {})
+    return [name for name in sorted(set(old) & set(new))
+            if _kinds_that_differ(old[name]["kinds"], new[name]["kinds"]) == [MARKER]]

@@ -105,8 +105,12 @@ def _dataset(v: Verdict, fresh: Path, committed: Path) -> None:
     a, b = digest.read(old), digest.read(new)
     lines = digest.differences(a, b)
     if not lines:
+        markers = digest.markers_only(a, b)
         v.dataset.append(f"dataset: identical to the committed one ({b['files']} files in {len(b['settings'])} "
-                         f"settings, sha256 {b['sha256'][:16]})")
+                         f"settings, sha256 {b['sha256'][:16]})" if not markers else
+                         f"dataset: every rendered file identical to the committed one ({b['files']} files in "
+                         f"{len(b['settings'])} settings); the markers of {len(markers)} settings differ (rendered "
+                         "under another key: the dataset stage's code or libraries changed, its files did not)")
         return
     v.dataset.append(f"dataset: differs from the committed one in {len(lines)} place(s) (sha256 {b['sha256'][:16]}, "
                      f"committed {a['sha256'][:16]})")

@@ -1,5 +1,5 @@
-"""Ray casting and shading (embree through trimesh): the `Renderer` of one setting's mesh and `render_frame`, one
-frame's colour, depth, positions, semantic, instance and render-entity images."""
+"""Ray casting (Embree pinned to its AVX2 kernels: `raycast`) and shading: the `Renderer` of one setting's mesh and
+`render_frame`, one frame's colour, depth, positions, semantic, instance and render-entity images."""
 from __future__ import annotations
 
 import math
@@ -12,27 +12,26 @@ import numpy as np
 from monolib.data import exact
 from monolib.data.synth.materials import _albedo
 from monolib.data.synth.mesh import SceneMesh
+from monolib.data.synth.raycast import RayCaster
 from monolib.data.synth.rooms import Layout
 
 
 class Renderer:
-    """Embree (via trimesh) ray caster + shader for one setting's mesh."""
+    """Ray caster + shader for one setting's mesh."""
 
     def __init__(self, mesh: SceneMesh, lay: Layout):
         import trimesh
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
 
         self.mesh = mesh
         self.lay = lay
-        self.tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-        self.normals = np.asarray(self.tm.face_normals)
+        self.normals = np.asarray(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).face_normals)
         self.v0 = mesh.vertices[mesh.faces[:, 0]]
-        self.rmi = RayMeshIntersector(self.tm, scale_to_box=False)
+        self.caster = RayCaster(mesh.vertices, mesh.faces)
 
     def cast(self, origin: np.ndarray, dirs: np.ndarray):
         """Primary rays from one origin: (face index or -1, distance along unit dirs)."""
         o = np.broadcast_to(origin, dirs.shape)
-        tri = self.rmi.intersects_first(o, dirs)
+        tri = self.caster.first(o, dirs)
         hit = tri >= 0
         t = np.full(len(dirs), np.nan)
         n = self.normals[tri[hit]]
@@ -41,8 +40,7 @@ class Renderer:
 
     def visible(self, origin: np.ndarray, dirs: np.ndarray, dist: np.ndarray) -> np.ndarray:
         """Whether nothing lies between each origin and the point `dist` along its unit direction (shadow rays)."""
-        occluded = self.rmi._scene.run(origin, dirs, dists=dist.astype(np.float32), query="OCCLUDED")
-        return occluded == -1
+        return ~self.caster.occluded(origin, dirs, dist)
 
     def _lit_from(self, origin: np.ndarray, n: np.ndarray, idx: np.ndarray, point: np.ndarray, margin: float,
                   facing: Optional[np.ndarray] = None):
