@@ -147,3 +147,34 @@ def test_the_switch_keeps_a_kernel_per_cell(monkeypatch):
     monkeypatch.setenv("MONOLIB_KERNELS", "tepid")
     with pytest.raises(ValueError, match="MONOLIB_KERNELS"):
         kernels.warm_enabled()
+
+
+def test_a_cycle_frozen_by_a_reset_is_collected_within_the_full_collection_period(monkeypatch):
+    """`reset_kernel` freezes what survives it (the next collections skip it); every `FULL_COLLECTION_EVERY`
+    resets it unfreezes first, so a reference cycle that a kept cache let go of is not kept for the kernel's life.
+    Outside a kernel IPython's reset (its collection of the last notebook's objects) is not there: the test collects
+    after each reset instead."""
+    import gc
+    import weakref
+
+    class Node:
+        pass
+
+    monkeypatch.setattr(kernels, "_start_state", {})
+    node = Node()
+    node.self = node
+    alive = weakref.ref(node)
+    cache = [node]
+    del node
+    try:
+        kernels.reset_kernel(False)  # the kernel's first reset: records its state, freezes the cycle with the rest
+        cache.clear()
+        for _ in range(kernels.FULL_COLLECTION_EVERY - 1):
+            kernels.reset_kernel(True)
+            gc.collect()
+        assert alive() is not None  # frozen: the collections do not see it
+        kernels.reset_kernel(True)
+        gc.collect()
+        assert alive() is None
+    finally:
+        gc.unfreeze()

@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 ENGINE = "monolib_warm"
 _local = threading.local()  # one kernel per worker thread (a local process, or a Dask worker's thread)
 _start_state: dict = {}     # inside a kernel: what `reset_kernel` restores
+FULL_COLLECTION_EVERY = 32  # resets between two collections over every object of the kernel (`reset_kernel`)
 
 
 def warm_enabled() -> bool:
@@ -181,12 +182,17 @@ def reset_kernel(used: bool) -> None:
             for value in list(vars(module).values()):
                 if isinstance(value, functools._lru_cache_wrapper) and value is not versions.file_version:
                     value.cache_clear()  # (file_version: keyed by each file's mtime and size, never stale)
+    _start_state["resets"] = _start_state.get("resets", 0) + 1
+    if _start_state["resets"] % FULL_COLLECTION_EVERY == 0:
+        gc.unfreeze()  # now and then one collection walks everything, so no cycle among them is kept
+        gc.collect()
     ip = get_ipython()
     if ip is not None:
         ip.reset(new_session=False)  # (its full garbage collection: of what the last notebook left)
     # What survives a reset (modules, the kept caches) is moved out of the collector's sight, so that the next
     # reset's collection walks only the next notebook's objects: a fifth of a second a cell with torch and PyG
-    # loaded. The frozen objects are still freed by their reference counts.
+    # loaded. The frozen objects are still freed by their reference counts; a cycle among them that a cache let go
+    # of waits for the next full collection (`FULL_COLLECTION_EVERY` resets).
     gc.freeze()
 
 
