@@ -9,7 +9,6 @@ stale, and dropped) and review the diff before committing it.
 """
 from __future__ import annotations
 
-import datetime
 import math
 import sys
 
@@ -56,10 +55,10 @@ def measured(figures=None) -> dict:
 
 
 def recorded(machines: list[dict], only_this_machine: bool = False, figures=None) -> list[dict]:
-    """`machines` with this machine's entry (`cpu_signature`, today's date, `measured`) in place of its old one."""
+    """`machines` with this machine's entry (`cpu_signature`, `measured`) in place of its old one."""
     cpu = cpu_signature()
     kept = [] if only_this_machine else [m for m in machines if m["cpu"] != cpu]
-    return kept + [{"cpu": cpu, "date": datetime.date.today().isoformat(), **measured(figures)}]
+    return kept + [{"cpu": cpu, **measured(figures)}]
 
 
 if __name__ == "__main__":

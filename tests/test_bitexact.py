@@ -118,7 +118,7 @@ def render_quick_setting(name: str, out: Path, isa: str) -> dict:
 def test_a_quick_setting_renders_to_the_committed_digest_on_this_cpu(tmp_path):
     """The committed digest of quick's dataset was rendered on another CPU: this CPU's render of one setting gives
     the same bytes, file kind by file kind (the setting's marker aside: it holds the code version). With Embree's own
-    choice of kernels on an AVX-512 CPU it does not (measured on the AMD EPYC of Zen 4: docs/reproducibility.md)."""
+    choice of kernels on an AVX-512 CPU it does not (docs/reproducibility.md)."""
     from monolib.data.synth import raycast
 
     if not raycast.cpu_has_isa():

@@ -73,8 +73,8 @@ def test_the_direction_report_reads_the_trained_encoders_of_the_smoke_study(smok
 
 # The smoke study's means on each CPU it has run on, written by tests/refresh_smoke_expected.py. Training on a CPU
 # with other vector units (AVX2 / AVX-512, Intel / AMD: other MKL and oneDNN kernels) moves a smoke mean, so the
-# notebooks' checked cells print no such number. Most rows move by a query or two; the node-only cell on ground
-# truth (s1, 0 m, one seed) moved by five queries of 24 between a Zen 3 and a Zen 4 EPYC. A band runs from 12.5
+# notebooks' checked cells print no such number. A row moves by a query or two where it moves (a dataset rendered
+# otherwise moved the node-only cell on ground truth by five queries of 24). A band runs from 12.5
 # points (three queries) below the lowest machine's mean to 12.5 above the highest, 0.05 for a perception metric:
 # a broken pipeline (chance, a constant depth) falls outside.
 SMOKE_EXPECTED = yaml.safe_load((paths.ROOT / "tests" / "smoke_expected.yaml").read_text())["machines"]

@@ -23,7 +23,7 @@ import pandas as pd
 import torch
 
 from monolib import device as devices, paths
-from monolib.bench.common import cpu_name, written
+from monolib.bench.common import written
 from monolib.graphs import stage as scenegraphs
 from monolib.io import read_json
 from monolib.params import load_study
@@ -123,7 +123,7 @@ def run(study_name: str = "quick", out: str | Path | None = None) -> dict:
     """The record of `monolib bench cell`, written to `out` (JSON, and its page beside it) when given."""
     study = load_study(study_name)
     scenario = next(iter(study.scenarios))
-    record = {"study": study.name, "cpu": cpu_name(), "cores": os.cpu_count(),
+    record = {"study": study.name, "cpu": devices.cpu_signature(), "cores": os.cpu_count(),
               "date": time.strftime("%Y-%m-%d"), "grid": grid_seconds(study),
               "training": training_profile(study, scenario)}
     print(cell_page(record))

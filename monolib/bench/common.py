@@ -8,7 +8,6 @@ from pathlib import Path
 import torch
 
 from monolib import io
-from monolib.device import cpu_signature
 from monolib.io import write_json
 
 
@@ -30,11 +29,6 @@ def device_name(dev: torch.device) -> str:
     except OSError:
         names = []
     return f"cpu: {names[0] if names else platform.processor() or platform.machine()}"
-
-
-def cpu_name() -> str:
-    """The CPU as benchmarks name it: model name, family, model and widest vector unit (`cpu_signature`)."""
-    return cpu_signature()
 
 
 def written(record: dict, out: str | None, table) -> dict:

@@ -13,9 +13,9 @@ import pandas as pd
 import torch
 
 from monolib import io, localize, methods, paths
-from monolib.bench.common import cpu_name
 from monolib.data import selection
 from monolib.data import stage as dataset
+from monolib.device import cpu_signature
 from monolib.localize import Localizer
 from monolib.params import PAPER, load_study
 from monolib.report.results import cell_metrics
@@ -78,7 +78,7 @@ def localize_photos(study_name: str = "quick", out: str | Path | None = None, la
     old_threads, old_cv = torch.get_num_threads(), cv2.getNumThreads()
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
-    record = {"study": study.name, "cpu": cpu_name(), "cores": os.cpu_count(), "torch_threads": 1,
+    record = {"study": study.name, "cpu": cpu_signature(), "cores": os.cpu_count(), "torch_threads": 1,
               "date": time.strftime("%Y-%m-%d"), "load_average_start": round(os.getloadavg()[0], 2),
               "jpeg_quality": quality, "width": study.dataset.width, "height": study.dataset.height,
               "latency_goal_ms": LATENCY_GOAL_MS, "methods": []}

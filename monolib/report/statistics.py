@@ -258,7 +258,7 @@ def seed_resampled_intervals(a: pd.DataFrame, b: pd.DataFrame, boot, cols: list[
 
     # numpy's array loops release the GIL: the resamples run on the CPU's cores, each on its own arrays, so the
     # result is the same on any number of threads
-    with ThreadPoolExecutor(max_workers=max(1, min(len(os.sched_getaffinity(0)), 8))) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, min(os.cpu_count() or 1, 8))) as pool:
         return np.array(list(pool.map(bounds, draws)), dtype=float).reshape(n, 2)
 
 

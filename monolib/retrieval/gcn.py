@@ -27,6 +27,7 @@ from torch_geometric.data import Data
 from torch_geometric.nn import (AttentionalAggregation, GATv2Conv, GCNConv, GINEConv, TransformerConv, global_max_pool,
                                 global_mean_pool)
 from torch_geometric.nn.conv.gcn_conv import gcn_norm
+from torch_geometric.utils import to_torch_csr_tensor
 
 from monolib.data.labels import NUM_CLASSES
 from monolib.device import device, seed_everything
@@ -151,18 +152,10 @@ def gcn_layer(conv: GCNConv, h: torch.Tensor, adjacency) -> torch.Tensor:
 
 
 def csr_of(row: torch.Tensor, col: torch.Tensor, value: torch.Tensor, n: int) -> torch.Tensor:
-    """The (n, n) sparse CSR matrix with `value` at (`row`, `col`): the arrays of
-    ``sparse_coo_tensor(...).coalesce().to_sparse_csr()``, entries in (row, column) order, built by one sort
-    instead of a coalesce and a conversion. Repeated (row, column) pairs are summed, as coalesce does (through it:
-    the graphs hold each pair once, and self-loops only as `gcn_norm` adds them)."""
-    key = row * n + col
-    key, order = torch.sort(key, stable=True)
-    if key.numel() > 1 and bool((key[1:] == key[:-1]).any()):
-        return torch.sparse_coo_tensor(torch.stack([row, col]), value, (n, n),
-                                       check_invariants=False).coalesce().to_sparse_csr()
-    crow = torch.zeros(n + 1, dtype=torch.long, device=row.device)
-    crow[1:] = torch.cumsum(torch.bincount(row, minlength=n), 0)
-    return torch.sparse_csr_tensor(crow, col[order], value[order], (n, n), check_invariants=False)
+    """The (n, n) sparse CSR matrix with `value` at (`row`, `col`), repeated pairs summed: PyG's
+    `to_torch_csr_tensor`, one sort (its `coalesce`) and the row pointers, the same arrays as
+    ``sparse_coo_tensor(...).coalesce().to_sparse_csr()`` without the COO tensor and its conversion."""
+    return to_torch_csr_tensor(torch.stack([row, col]), value, (n, n))
 
 
 def encoder_graph(g: Data, threshold: float, spec: GCNSpec, projection: Optional[str]) -> Data:
