@@ -11,7 +11,7 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install lock readme study ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-cell bench-imagenet bench-selection bench-selection-real data-edits clean-runs
+.PHONY: install lock readme study paper-scale training-size ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-cell bench-imagenet bench-selection bench-selection-real data-edits clean-runs
 
 install: $(STAMP)
 
@@ -42,6 +42,22 @@ lock: install
 
 study: install
 	$(VENV)/bin/monolib study $(STUDY)
+
+# quick at the paper's training size (144 training settings x 60 frames, quick's test split; params/paper_scale.yaml
+# -> figures/paper_scale/): about two hours on 2 cores, resumable (run it again after a stop), on the Dask cluster
+# as any study (docs/cluster.md)
+paper-scale: install
+	$(VENV)/bin/monolib study paper_scale
+	$(VENV)/bin/monolib training-size
+
+# the training-size curve on both legs (figures/training_size.md, .png; figures/reproduces.md, the README's table):
+# the middle sizes (params/quick_96x40.yaml, params/real_96x40.yaml; about an hour on 2 cores), read beside quick,
+# paper_scale, real and real_full as committed (the development set unpacked as `make real` does: REAL_DATA)
+training-size: install
+	$(VENV)/bin/monolib unpack $(REAL_DATA) --out runs/published_graphs_dev
+	$(VENV)/bin/monolib study quick_96x40
+	$(VENV)/bin/monolib study real_96x40
+	$(VENV)/bin/monolib training-size
 
 # the result blocks of README.md and docs/*.md rewritten from figures/ (make study does it at its end)
 readme: install

@@ -55,6 +55,8 @@ def _study_parsers(sub) -> None:
     p.add_argument("source", help="published_graphs_dev.tar.xz, or a folder with its train/ folder")
     p.add_argument("--out", default="runs/published_graphs_dev",
                    help="folder to write (relative to the project root; default runs/published_graphs_dev)")
+    sub.add_parser("training-size", help="the training-size curve of both legs and the README's reproduction table "
+                                         "from the committed studies (figures/training_size.md, reproduces.md)")
     p = sub.add_parser("verify", help="compare a study's fresh figures with the committed ones: identical files, "
                                       "means moved against their intervals, claims that fail (exit 1 on a problem)")
     p.add_argument("study", nargs="?", default="quick", help="the study (default quick)")
@@ -211,6 +213,15 @@ def _unpack(args) -> int:
     return 0
 
 
+def _training_size(args) -> int:
+    from monolib.report import readme, training_size  # deferred: torch
+
+    for path in training_size.write().values():
+        print(f"wrote {path.relative_to(paths.ROOT)}")
+    readme.update()
+    return 0
+
+
 def _verify(args) -> int:
     from monolib.report import verify  # deferred: torch
 
@@ -282,8 +293,8 @@ def _bench(args) -> int:
 
 
 HANDLERS = {"study": _study, "synth": _synth, "perception": _perception, "zoo": _zoo, "fidelity": _fidelity,
-            "data-edits": _data_edits,
-            "unpack": _unpack, "verify": _verify, "index": _index, "localize": _localize, "bench": _bench}
+            "data-edits": _data_edits, "unpack": _unpack, "training-size": _training_size, "verify": _verify,
+            "index": _index, "localize": _localize, "bench": _bench}
 
 
 def _setup() -> None:

@@ -63,7 +63,8 @@ DEFAULT_STUDY = "quick"
 # the studies whose results are committed, and where (every other study writes into runs/<study>/figures/)
 COMMITTED_FIGURES = {"quick": "", "ablations": "ablations", "direction": "direction", "colour": "colour",
                      "perception_long": "perception_long", "scratch": "scratch", "real": "real",
-                     "real_full": "real_full"}
+                     "real_full": "real_full", "paper_scale": "paper_scale", "quick_96x40": "quick_96x40",
+                     "real_96x40": "real_96x40"}
 
 
 def figures_dir(study_name: str) -> Path:

@@ -22,7 +22,7 @@ from types import SimpleNamespace
 from monolib.data import synth
 ds = SimpleNamespace(width=128, height=96, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
                      frames_per_setting=3, train_frames_per_setting=3, dim_fraction=0.0, tilt_shift_settings=0,
-                     workers=1)
+                     base_train_settings=None, workers=1)
 synth.render_dataset(SimpleNamespace(seed=11, dataset=ds), Path(sys.argv[1]), progress=False)
 from numpy._core._multiarray_umath import __cpu_features__ as have, __cpu_dispatch__ as dispatch
 print(json.dumps([k for k in dispatch if have.get(k)]))

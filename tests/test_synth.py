@@ -5,6 +5,7 @@ preview files, as `monolib.data.hypersim` reads them from a real download.
 """
 import csv
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -64,7 +65,7 @@ def _tiny_study():
 
     ds = SimpleNamespace(width=64, height=48, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
                          frames_per_setting=4, train_frames_per_setting=4, dim_fraction=0.0, tilt_shift_settings=0,
-                         workers=1)
+                         base_train_settings=None, workers=1)
     return SimpleNamespace(seed=3, dataset=ds)
 
 
@@ -357,6 +358,27 @@ def test_tilt_shift_setting_through_the_reader(smoke_dataset):
             np.testing.assert_allclose(f.depth[ok], -p_cam[..., 2][ok], atol=0.02, rtol=3e-3)
             checked += 1
     assert checked > 0
+
+
+def test_a_larger_training_split_keeps_quicks_test_split_and_training_settings():
+    """`dataset.base_train_settings`: the test settings are quick's exactly (the same dicts: the same renders), the
+    first 48 training settings are quick's but for their frame count, and the settings after them are new training
+    families, about `dim_fraction` of them dim and none tilt-shift."""
+    quick = params.load_study("quick")
+    for n, frames in ((96, 40), (144, 60)):
+        big = params.load_study("quick")
+        big.dataset.train_settings, big.dataset.train_frames_per_setting = n, frames
+        big.dataset.base_train_settings = 48
+        small, large = synth.plan(quick), synth.plan(big)
+        n_test = quick.dataset.test_settings + quick.dataset.test_siblings
+        assert large[:n_test] == small[:n_test]
+        assert [dict(s, frames=frames) for s in small[n_test:]] == large[n_test:len(small)]
+        extra = large[len(small):]
+        assert len(extra) == n - 48 and {s["split"] for s in extra} == {"train"}
+        assert not any(s["tilt_shift"] for s in extra)
+        assert sum(s["dim"] for s in extra) == math.ceil(quick.dataset.dim_fraction * len(extra))
+        assert len({s["name"] for s in large}) == len(large)
+        assert min(s["family"] for s in extra) > max(s["family"] for s in small)
 
 
 def test_every_setting_of_a_large_plan_has_a_hypersim_name():

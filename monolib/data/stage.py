@@ -26,6 +26,8 @@ def dataset_key(study: Study) -> str:
     spec = dataclasses.asdict(study.dataset)
     for where in ("root", "metadata_dir", "workers"):  # where the files are and how many processes read them
         spec.pop(where)
+    if spec["base_train_settings"] is None:  # in the key only where a study sets it (it changes no other plan)
+        spec.pop("base_train_settings")
     if study.dataset.source != "synth":
         # a real dataset's `train_settings` is a subsample of its training settings (None: all of them), under its
         # own name; `train_settings` holds the mini-Hypersim's default, as in the keys of every study without one

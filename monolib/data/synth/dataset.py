@@ -90,10 +90,16 @@ def plan(study) -> list[dict]:
     rest = [i for i in room_order if i not in main]
     cycle = main + rest
     fam_room = [ROOM_TYPES[cycle[f % len(cycle)]] for f in range(n_fam)]
-    n_dim = int(math.ceil(ds.dim_fraction * total - 1e-9))
-    dim_set = set(rng.permutation(total)[:n_dim].tolist())
-    n_tilt = min(total, int(ds.tilt_shift_settings))
-    tilt_set = set(np.round(np.linspace(0, total, n_tilt, endpoint=False)).astype(int).tolist()) if n_tilt else set()
+    # dim and tilt-shift drawn over the settings of the base plan (every setting without `base_train_settings`);
+    # the settings after it draw their dim ones from their own stream and have no tilt-shift camera
+    base = total if ds.base_train_settings is None else total - n_train + int(ds.base_train_settings)
+    n_dim = int(math.ceil(ds.dim_fraction * base - 1e-9))
+    dim_set = set(rng.permutation(base)[:n_dim].tolist())
+    n_extra_dim = int(math.ceil(ds.dim_fraction * (total - base) - 1e-9))
+    extra = np.random.default_rng([study.seed, 2718, 1]).permutation(total - base)[:n_extra_dim]
+    dim_set |= {base + int(i) for i in extra}
+    n_tilt = min(base, int(ds.tilt_shift_settings))
+    tilt_set = set(np.round(np.linspace(0, base, n_tilt, endpoint=False)).astype(int).tolist()) if n_tilt else set()
     for i, s in enumerate(settings):
         s["index"] = i
         s["name"] = f"ai_{(VOLUME0 + s['family']) % 1000:03d}_{s['member'] + 1:03d}"
@@ -305,7 +311,7 @@ def benchmark(width: int = 256, height: int = 192, frames: int = 20, seed: int =
     """Render one setting's frames into a temporary folder; print and return frames per second by stage."""
     ds = SimpleNamespace(width=width, height=height, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
                          frames_per_setting=frames, train_frames_per_setting=frames, dim_fraction=0.0,
-                         tilt_shift_settings=0, workers=1)
+                         tilt_shift_settings=0, base_train_settings=None, workers=1)
     study = SimpleNamespace(seed=seed, dataset=ds)
     s = plan(study)[0]
     timing: dict = {}
