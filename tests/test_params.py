@@ -1,12 +1,15 @@
 """Study files: the committed ones load; bad ones fail with one error naming the key."""
+import dataclasses
 import math
 import os
 
 import pytest
 import yaml
 
-from monolib import paths
-from monolib.params import StudyError, load_study, resolve_path
+from monolib import paths, study_file_doc
+from monolib.params import (DatasetSpec, DepthSpec, GCNSpec, GraphsSpec, MoreSeeds, PerceptionSpec, Protocol,
+                            Scenario, SegmentationSpec, Study, StudyError, Variant, load_study, resolve_path,
+                            study_keys)
 
 
 def _merged(base: dict, over: dict) -> dict:
@@ -222,8 +225,8 @@ def test_threshold_zero_and_no_siblings_protocol_are_allowed(tmp_path):
      "perception.depth\\[0\\].batch_size: expected at least 2"),
     (lambda d: d["gcn"].update(epochs=0), "gcn.epochs: expected at least 1, got 0"),
     (lambda d: d["gcn"].update(layers=0), "gcn.layers: expected at least 1, got 0"),
-    (lambda d: d["protocol"].update(precision_k=[2, 0]), "protocol.precision_k: each k must be at least 1, got 0"),
-    (lambda d: d["protocol"].update(recall_k=[0]), "protocol.recall_k: each k must be at least 1, got 0"),
+    (lambda d: d["protocol"].update(precision_k=[2, 0]), "protocol.precision_k\\[1\\]: expected at least 1, got 0"),
+    (lambda d: d["protocol"].update(recall_k=[0]), "protocol.recall_k\\[0\\]: expected at least 1, got 0"),
     (lambda d: d["gcn"].update(batch_size=0), "gcn.batch_size: expected at least 1"),
     (lambda d: d["dataset"].update(base_train_settings=7),
      "dataset.base_train_settings: expected 1..train_settings \\(6\\), got 7"),
@@ -265,6 +268,69 @@ def test_values_the_code_cannot_use_are_refused_when_the_study_loads(tmp_path, c
     """Each bad value: one StudyError naming the key and what is expected, before any work."""
     with pytest.raises(StudyError, match=key):
         load_study(write(tmp_path, change))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda d: d["dataset"].update(width=2000), "dataset.width: expected 16..1024, got 2000"),
+    (lambda d: d["dataset"].update(source="real"), "dataset.source: expected one of synth, hypersim, got 'real'"),
+    (lambda d: d["perception"]["depth"][1].update(backbone="vgg16"),
+     "perception.depth[1].backbone: expected one of resnet18, resnet34, resnet50, resnet101, resnext50_32x4d, "
+     "resnext101_32x8d, efficientnet_lite0, efficientnet_lite1, efficientnet_lite2, got 'vgg16'"),
+    (lambda d: d["perception"]["depth"][0].update(nme="x"),
+     "perception.depth[0].nme: unknown key (allowed: backbone, batch_size, checkpoint, decoder_width, epochs, lr, "
+     "name, pretrained, role, train_height, train_width, val_settings, weight_decay, weights)"),
+    (lambda d: d["scenarios"]["s2"].update(depth_scale=0), "scenarios.s2.depth_scale: expected > 0, got 0"),
+    (lambda d: d["gcn"].update(lr="fast"), "gcn.lr: expected a number (or 'inf'), got 'fast'"),
+    (lambda d: d["gcn"].update(family_share=2), "gcn.family_share: expected a share in [0, 1], got 2"),
+    (lambda d: d["gcn"].update(min_epochs=9), "gcn.min_epochs: expected 1 .. epochs (3), got 9"),
+    (lambda d: d.update(seeds=[True]), "seeds[0]: expected an integer, got True"),
+    (lambda d: d.update(thresholds=[]), "thresholds: expected a non-empty list, got []"),
+    (lambda d: d.update(scenarios={}), "scenarios: expected a non-empty mapping, got {}"),
+    (lambda d: d.update(variants={"v": {"thresholds": [1, -2]}}),
+     "variants.v.thresholds[1]: expected a distance in metres >= 0 (0: no edges; inf: all pairs), got -2"),
+    (lambda d: d.update(variants={"v": 3}),
+     "variants.v: expected a mapping of ['ablation_of', 'description', 'gcn', 'scenarios', 'thresholds'], got 3"),
+    (lambda d: d.update(methods="gcn"), "methods: expected a list, got 'gcn'"),
+    (lambda d: d.update(path="x.yaml"), "path: unknown key (allowed: cell_timeout, dataset, deterministic, extends, "
+     "gcn, graphs, graphs_root, image_training, jobs, methods, more_seeds, name, perception, protocol, scenarios, "
+     "seed, seeds, threads, thresholds, variants)"),
+    (lambda d: d["perception"]["depth"][1].update(name="depth_a"),
+     "perception: model names must be unique and not 'gt', got ['deeplab', 'depth_a', 'depth_a']"),
+    (lambda d: d["dataset"].update(width=100), "dataset.width: Hypersim frames are 4:3; got 100x96"),
+])
+def test_each_error_is_one_line_naming_the_key_the_expected_and_the_value(tmp_path, change, message):
+    """A type, a choice, a bound, an unknown key, a rule of one spec or between specs: whichever part of the schema
+    refuses a value, the error is the file, the exact key (list items by index), what was expected and the value."""
+    path = write(tmp_path, change)
+    with pytest.raises(StudyError) as refused:
+        load_study(path)
+    assert str(refused.value) == f"{path}: {message}"
+
+
+def test_specs_built_in_code_are_checked_by_the_same_schema():
+    """The schema is the specs' own: a spec built in code meets the same choices, bounds and rules as one read from
+    a file, and `dataclasses.replace` checks again."""
+    with pytest.raises(ValueError, match="conv"):
+        GCNSpec(conv="sage")
+    with pytest.raises(ValueError, match="min_epochs"):
+        dataclasses.replace(GCNSpec(epochs=3), min_epochs=4)
+    assert dataclasses.asdict(GCNSpec(lr=1)) == {**dataclasses.asdict(GCNSpec()), "lr": 1.0}
+
+
+def test_the_study_file_reference_is_written_from_the_schema():
+    """docs/study-file.md is what `make study-file-doc` writes from the schema now, and it has a row with a meaning
+    for every key of every spec a study file holds."""
+    assert study_file_doc.PAGE.read_text() == study_file_doc.reference(), "docs/study-file.md: make study-file-doc"
+    text = study_file_doc.PAGE.read_text()
+    found = study_file_doc.sections()
+    assert [spec for _, spec in found] == [Study, DatasetSpec, GraphsSpec, PerceptionSpec, SegmentationSpec,
+                                           DepthSpec, Scenario, MoreSeeds, GCNSpec, Variant, Protocol]
+    for key, spec in found:
+        assert f"## {study_file_doc.title(key)}\n" in text
+        for name in study_keys(spec):
+            assert spec.__pydantic_fields__[name].description, f"{key}.{name}: no description"
+            assert f"| `{name}` |" in text, f"{key}.{name}: not in docs/study-file.md"
+    assert "| `path` |" not in text and "| `fold` |" not in text  # fields of a loaded study, not keys of the file
 
 
 def test_image_training_trains_the_image_encoders_and_nothing_else(tmp_path):
