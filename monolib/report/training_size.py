@@ -87,16 +87,28 @@ def markdown(t: pd.DataFrame) -> str:
         lines += ["Not run yet (left out): " + ", ".join(f"`{s}`" for s in missing) + ".", ""]
     for leg, g in t.groupby("leg", sort=False):
         sizes = list(dict.fromkeys(g["size"]))
-        lines += [f"## {leg}", "", "| method | threshold (m) | " + " | ".join(sizes) + " | paper |",
-                  "| --- | --- |" + " ---: |" * (len(sizes) + 1)]
+        lines += [f"## {leg}", "", "| method | threshold (m) | " + " | ".join(sizes)
+                  + f" | {sizes[-1]} against {sizes[0]} | paper |", "| --- | --- |" + " ---: |" * (len(sizes) + 2)]
         for (method, thr), rows in g.groupby(["method", "threshold"], sort=False):
             by_size = {r.size: folds._ci(r.mean, r.ci_lo, r.ci_hi) for r in rows.itertuples()}
             paper = rows["paper"].iloc[0]
             lines.append(f"| {method} | {tables.threshold_label(thr)} | "
-                         + " | ".join(by_size.get(s, "") for s in sizes)
-                         + f" | {'' if paper is None or paper != paper else format(paper, '.1f')} |")
-        lines.append("")
+                         + " | ".join(by_size.get(s, "") for s in sizes) + f" | {change(rows, sizes)} | "
+                         + f"{'' if paper is None or paper != paper else format(paper, '.1f')} |")
+        lines += ["", f"{sizes[-1]} against {sizes[0]}: the difference of the means; *apart* when the two intervals "
+                  "do not overlap (a conservative test: the intervals are each study's own, not a paired bootstrap "
+                  "of the difference), *overlapping* otherwise.", ""]
     return "\n".join(lines)
+
+
+def change(rows: pd.DataFrame, sizes: list[str]) -> str:
+    """The largest size's mean minus the smallest's, and whether their intervals are apart: '+9.8, apart'."""
+    ends = [rows[rows["size"] == s] for s in (sizes[0], sizes[-1])]
+    if len(sizes) < 2 or any(e.empty for e in ends):
+        return ""
+    a, b = ends[0].iloc[0], ends[1].iloc[0]
+    apart = b["ci_lo"] > a["ci_hi"] or b["ci_hi"] < a["ci_lo"]
+    return f"{tables.signed(b['mean'] - a['mean'])}, {'apart' if apart else 'overlapping'}"
 
 
 def plot(t: pd.DataFrame, path: Path) -> Path:
