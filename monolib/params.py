@@ -305,9 +305,10 @@ class Scenario:
 
 @dataclass(config=SCHEMA)
 class GCNSpec:
-    """The graph encoder and its training (`monolib.retrieval.gcn`); the defaults are the paper's. Model selection
-    (`monolib.retrieval.gcn.EarlyStopping`) holds for every method trained with the triplet loss; `variants:` change
-    the encoder's choices per method, `image_training:` the training of a learned image encoder."""
+    """The graph encoder and its training (`monolib.retrieval.gcn`); the defaults are the paper's. The training
+    (`TRAINING_KEYS`: `monolib.retrieval.training.TrainingRule`, its model selection `EarlyStopping`) holds for
+    every method trained with the triplet loss; `variants:` change the encoder's choices per method,
+    `image_training:` the training of a learned image encoder."""
     hidden: Annotated[Int, _meaning(f"channels of the hidden convolutions (conv: transformer: divisible by its "
                                     f"{TRANSFORMER_HEADS} heads)")] = 128
     layers: Annotated[Int, _meaning("graph convolutions", ge=1)] = 5

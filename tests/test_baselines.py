@@ -10,6 +10,7 @@ from monolib.data.selection import Selection, select_frames
 from monolib.data.stage import ensure_dataset
 from monolib.params import load_study
 from monolib.retrieval import baselines
+from monolib.retrieval.training import training_rule
 
 IMAGE_METHODS = ["color_hist", "orb_bow", "image_triplet"]
 
@@ -92,8 +93,8 @@ def test_black_image_does_not_crash(smoke):
 
 def test_triplet_cnn_training_loss_falls(smoke):
     study, sel = smoke
-    spec = dataclasses.replace(study.gcn, epochs=4, patience=4)
-    _, extra, history, state = baselines.image_triplet_embed(study, sel, 0, spec=spec)
+    rule = training_rule(dataclasses.replace(study.gcn, epochs=4, patience=4))
+    _, extra, history, state = baselines.image_triplet_embed(study, sel, 0, rule=rule)
     loss = history["train_loss"].tolist()
     assert len(loss) == 4 and extra["epochs_run"] == 4 and state
     assert min(loss[1:]) < 0.8 * loss[0]

@@ -7,7 +7,8 @@ import torch
 
 from monolib.graphs.build import at_threshold, complete_graph
 from monolib.params import GCNSpec
-from monolib.retrieval.gcn import GraphEncoder, draw_triplets, embed, encoder_graph, train
+from monolib.retrieval.gcn import GraphEncoder, embed, encoder_graph, train
+from monolib.retrieval.training import draw_triplets
 
 
 def toy_graphs(n_settings=4, per=6, seed=0):
@@ -40,6 +41,21 @@ def test_triplets_respect_settings():
     a, p, n = draw_triplets(s, np.random.default_rng(0))
     assert sorted(a) == list(range(6))
     assert (s[a] == s[p]).all() and (s[a] != s[n]).all()
+
+
+def test_the_training_rule_is_a_specs_training_keys():
+    """`training_rule` reads exactly the spec's `TRAINING_KEYS`, in their order; what the encoder is (its mining
+    among them) stays in the spec."""
+    import dataclasses
+
+    from monolib.params import TRAINING_KEYS
+    from monolib.retrieval.training import training_rule
+
+    spec = GCNSpec(epochs=7, lr=0.003, schedule="cosine", select="last", patience=3, min_epochs=2, batch_size=16,
+                   weight_decay=0.01, margin=0.5, mining="family", hidden=32)
+    rule = training_rule(spec)
+    assert tuple(f.name for f in dataclasses.fields(rule)) == TRAINING_KEYS
+    assert dataclasses.astuple(rule) == (7, 0.003, "cosine", "last", 3, 2, 16, 0.01, 0.5)
 
 
 def test_training_lowers_the_loss_and_is_deterministic():
@@ -348,16 +364,16 @@ def test_the_cosine_schedule_sets_each_epochs_learning_rate(monkeypatch):
     train differently from the same seed."""
     import dataclasses
 
-    from monolib.retrieval import gcn
+    from monolib.retrieval import training
 
     seen = []
-    real = gcn.set_epoch_lr
+    real = training.set_epoch_lr
 
-    def spy(opt, spec, epoch):
-        real(opt, spec, epoch)
+    def spy(opt, rule, epoch):
+        real(opt, rule, epoch)
         seen.append(opt.param_groups[0]["lr"])
 
-    monkeypatch.setattr(gcn, "set_epoch_lr", spy)
+    monkeypatch.setattr(training, "set_epoch_lr", spy)
     graphs = toy_graphs()
     spec = GCNSpec(epochs=4, batch_size=8, patience=10, lr=0.01, select="last")
     constant = train(graphs[:18], graphs[18:], spec, seed=0, threads=1)

@@ -16,7 +16,7 @@ from monolib.graphs.build import (
     node_layout_features,
 )
 from monolib.params import GCNSpec, StudyError, load_study
-from monolib.retrieval import gcn
+from monolib.retrieval import gcn, training
 
 # the layout encoders keep `ours`'s undirected edges and linear head (params/quick.yaml)
 SMALL = GCNSpec(hidden=16, layers=2, out=8, epochs=2, batch_size=16, patience=5, edges="both", linear=True)
@@ -173,7 +173,7 @@ COUNTS = {"ai_001_001": 3, "ai_001_002": 5, "ai_002_001": 4, "ai_002_002": 2, "a
 
 def test_family_negatives_take_the_sibling():
     s = shuffled_settings(COUNTS)
-    _, _, negative = gcn.draw_triplets(s, np.random.default_rng(1))
+    _, _, negative = training.draw_triplets(s, np.random.default_rng(1))
     out = gcn.family_negatives(s, negative, 1.0, np.random.default_rng(2))
     assert out.shape == negative.shape and out is not negative
     sibling = {"ai_001_001": "ai_001_002", "ai_001_002": "ai_001_001", "ai_002_001": "ai_002_002",

@@ -12,6 +12,7 @@ from monolib.data.stage import ensure_dataset
 from monolib.params import load_study
 from monolib.perception import features, imagenet
 from monolib.retrieval import pretrained
+from monolib.retrieval.training import training_rule
 
 
 @pytest.fixture(scope="module")
@@ -141,8 +142,8 @@ def test_triplet_fine_tuning_starts_from_imagenet_and_learns(smoke):
     study, sel = smoke
     _, head = features.networks()
     trunk = {k: features.load(study, getattr(sel, k)) for k in ("train", "val", "test")}
-    spec = dataclasses.replace(study.gcn, epochs=8, patience=8)
-    _, extra, history, state = pretrained.triplet_embed(study, sel, trunk, head, 0, spec)
+    rule = training_rule(dataclasses.replace(study.gcn, epochs=8, patience=8))
+    _, extra, history, state = pretrained.triplet_embed(study, sel, trunk, head, 0, rule=rule)
     start = head[0].weight.detach()
     assert state["head.0.weight"].shape == start.shape
     assert not torch.equal(state["head.0.weight"], start)

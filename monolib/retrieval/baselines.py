@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -19,8 +20,9 @@ import pandas as pd
 import torch
 from torch import nn
 
-from monolib.device import device, seed_everything
-from monolib.retrieval.gcn import draw_triplets, set_epoch_lr, stopper_of
+from monolib.device import device
+from monolib.retrieval import training
+from monolib.retrieval.training import TrainingRule, TrainResult, draw_triplets, training_rule, triplet_batches
 
 log = logging.getLogger(__name__)
 
@@ -237,82 +239,47 @@ def cnn_embed(model: ImageEncoder, images: torch.Tensor, batch_size: int = 256) 
     return torch.cat(out) if out else torch.zeros((0, model.out_channels))
 
 
-@dataclass
-class CNNResult:
-    model: ImageEncoder
-    history: list
-    best_epoch: int
-    seconds: float
+def image_batches(train_x: torch.Tensor, train_settings, rule: TrainingRule, batch_input):
+    """The batch function (`monolib.retrieval.training.train`'s ``epoch_batches(rng, gen)``) of an encoder of
+    images (or of their features) `train_x`, one row per item of `train_settings`: the paper's random triplets,
+    each batch's rows (anchors, positives, negatives) turned into the model's input on the CPU by
+    ``batch_input(x, gen)``, augmented with the generator `gen`."""
+    settings = np.asarray(train_settings)
 
-
-def train_encoder(make_model, train_x: torch.Tensor, train_settings, val_x: torch.Tensor, val_settings, spec,
-                  seed: int, batch_input, embed, threads: int = 2, deterministic: bool = True,
-                  on_epoch=None) -> CNNResult:
-    """The GCN's training loop (`monolib.retrieval.gcn.train`) for an encoder of images (or of their features):
-    Adam, triplet margin loss, fresh per-setting triplets each epoch, the model kept and the stop by `spec`'s
-    selection (`monolib.retrieval.gcn.EarlyStopping`). `make_model()` builds the encoder (after the seeding);
-    `batch_input(x, gen)` turns a batch of `train_x` rows (anchors, positives, negatives) into the model's input on the
-    CPU, augmented with the generator `gen`; `embed(model, val_x)` gives the validation embeddings. `on_epoch(model)`,
-    when given, adds columns to each epoch's history row, as in `monolib.retrieval.gcn.train` (it must not draw from the
-    seed's random streams)."""
-    torch.set_num_threads(threads)
-    gen = seed_everything(int(seed), deterministic)
-    rng = np.random.default_rng(seed)
-    dev = device()
-    model = make_model().to(dev)
-    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], lr=spec.lr,
-                           weight_decay=spec.weight_decay)
-    loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
-    settings, val_settings = np.asarray(train_settings), np.asarray(val_settings)
-    stopper = stopper_of(spec, seed, model)
-    t0 = time.perf_counter()
-    for epoch in range(1, spec.epochs + 1):
-        set_epoch_lr(opt, spec, epoch)
-        model.train()
+    def epoch_batches(rng: np.random.Generator, gen: torch.Generator):
         a, p, n = draw_triplets(settings, rng)
-        perm = rng.permutation(len(a))
-        losses = []
-        for s in range(0, len(perm), spec.batch_size):
-            idx = perm[s : s + spec.batch_size]
-            b = len(idx)
-            x = batch_input(train_x[torch.from_numpy(np.concatenate([a[idx], p[idx], n[idx]]))], gen)
-            z = model(x.to(dev))
-            loss = loss_fn(z[:b], z[b : 2 * b], z[2 * b :])
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-            losses.append(loss.item() * b)
-        train_loss = sum(losses) / len(a)
-        val_emb = embed(model, val_x) if len(val_x) else None
-        extra = on_epoch(model) if on_epoch is not None else None
-        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn, False, extra):
-            break
-    model.load_state_dict(stopper.best_state)
-    return CNNResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)
+        return triplet_batches(a, p, n, batch_size=rule.batch_size, rng=rng, margin=rule.margin,
+                               input_of=lambda idx: batch_input(train_x[torch.from_numpy(idx)], gen))
+
+    return epoch_batches
 
 
-def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tensor, val_settings, spec, seed: int,
-              threads: int = 2, augment: bool = True, deterministic: bool = True, on_epoch=None) -> CNNResult:
-    """`train_encoder` with the from-scratch `ImageEncoder` on uint8 images (flip and colour jitter)."""
+def train_cnn(train_images: torch.Tensor, train_settings, val_images: torch.Tensor, val_settings, *,
+              rule: TrainingRule, seed: int, threads: int = 2, augment: bool = True, deterministic: bool = True,
+              on_epoch=None) -> TrainResult:
+    """The from-scratch `ImageEncoder` on uint8 images (flip and colour jitter with `augment`), trained by `rule`
+    (`monolib.retrieval.training.train`: the graph encoders' loop, schedule and model selection). `on_epoch(model)`,
+    when given, adds columns to each epoch's history row (it must not draw from the seed's random streams)."""
     def batch_input(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
         x = x.float() / 255.0
         if augment:
             x = _augment(x, gen)
         return (x - 0.5) / 0.25
 
-    return train_encoder(ImageEncoder, train_images, train_settings, val_images, val_settings, spec, seed,
-                         batch_input, cnn_embed, threads, deterministic, on_epoch)
+    return training.train(ImageEncoder, image_batches(train_images, train_settings, rule, batch_input), rule=rule,
+                          seed=seed, val_inputs=val_images, val_settings=val_settings, embed=cnn_embed,
+                          threads=threads, deterministic=deterministic, on_epoch=on_epoch)
 
 
-def image_triplet_embed(study, selection, seed: int, spec=None):
-    """(test embeddings, extra, history, state) for `image_triplet`; `spec` defaults to the study's spec of the
-    method (`Study.gcn_spec`: `gcn:` with `image_training`)."""
-    spec = spec or study.gcn_spec("image_triplet")
+def image_triplet_embed(study, selection, seed: int, rule: Optional[TrainingRule] = None):
+    """(test embeddings, extra, history, state) for `image_triplet`; `rule` defaults to the study's training of
+    the method (`Study.gcn_spec`: `gcn:` with `image_training`)."""
+    rule = rule or training_rule(study.gcn_spec("image_triplet"))
     t = time.perf_counter()
     tr, va, te = (image_tensor(fs) for fs in (selection.train, selection.val, selection.test))
     load_s = time.perf_counter() - t
-    result = train_cnn(tr, [f.setting for f in selection.train], va, [f.setting for f in selection.val], spec, seed,
-                       threads=study.threads, deterministic=study.deterministic)
+    result = train_cnn(tr, [f.setting for f in selection.train], va, [f.setting for f in selection.val], rule=rule,
+                       seed=seed, threads=study.threads, deterministic=study.deterministic)
     emb = cnn_embed(result.model, te).numpy().astype(np.float32)
     extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history), "train_s": result.seconds,
              "load_s": load_s, "input_size": list(CNN_SIZE), "channels": [CNN_STEM, *CNN_CHANNELS],

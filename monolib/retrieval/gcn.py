@@ -7,16 +7,15 @@ messages from source to target: a node hears only the nodes of lower label id, a
 The paper's text describes a linear layer to 64 after the convolutions; its code has none. The undirected encoder
 (`edges: both`) and the linear head (`linear: true`) are ablations of it (params/direction.yaml).
 Triplets (paper): every training graph is an anchor once per epoch; its positive is a random other graph of the
-same setting, its negative a random graph of another setting; drawn afresh each epoch from the seed.
+same setting, its negative a random graph of another setting; drawn afresh each epoch from the seed. The training
+loop, its schedule and its model selection are every triplet encoder's (`monolib.retrieval.training`).
 """
 from __future__ import annotations
 
-import copy
 import hashlib
-import logging
-import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import partial
 from typing import Optional
 
 import numpy as np
@@ -30,13 +29,12 @@ from torch_geometric.nn.conv.gcn_conv import gcn_norm
 from torch_geometric.utils import to_torch_csr_tensor
 
 from monolib.data.labels import NUM_CLASSES
-from monolib.device import device, seed_everything
 from monolib.data.protocols import family
 from monolib.graphs.build import (EDGE_LAYOUT, NODE_FEATURES, NODE_LAYOUT, at_threshold, directed_by,
                                   layout_graph, node_rank)
 from monolib.params import TRANSFORMER_HEADS, GCNSpec
-
-log = logging.getLogger(__name__)
+from monolib.retrieval import training
+from monolib.retrieval.training import Batch, TrainResult, draw_triplets, training_rule, triplet_batches
 
 
 def ragged_arange(starts: torch.Tensor, counts: torch.Tensor) -> torch.Tensor:
@@ -320,30 +318,6 @@ class GraphEncoder(nn.Module):
                           global_max_pool(m, graph, size=batch.num_graphs)], dim=1)
 
 
-def draw_triplets(settings: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(anchor, positive, negative) index arrays: every graph is an anchor once, vectorised over anchors.
-
-    A setting with a single graph uses the anchor itself as its positive.
-    """
-    settings = np.asarray(settings)
-    n = len(settings)
-    order = np.argsort(settings, kind="stable")
-    _, group_of_sorted, sizes = np.unique(settings[order], return_inverse=True, return_counts=True)
-    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
-    pos_in_group = np.arange(n) - starts[group_of_sorted]
-    size = sizes[group_of_sorted]
-    # positive: another member of the group (offset 1..size-1), or itself for a singleton
-    offset = np.where(size > 1, rng.integers(1, np.maximum(size, 2)), 0)
-    positive_sorted = starts[group_of_sorted] + (pos_in_group + offset) % size
-    # negative: a rank among the n - size graphs of other settings, shifted past the anchor's own group
-    if (n - size <= 0).any():
-        raise ValueError("triplets need graphs of at least two settings")
-    r = rng.integers(0, n - size)
-    negative_sorted = np.where(r >= starts[group_of_sorted], r + size, r)
-    anchor = order
-    return anchor, order[positive_sorted], order[negative_sorted]
-
-
 def family_negatives(settings: np.ndarray, negative: np.ndarray, share: float,
                      rng: np.random.Generator) -> np.ndarray:
     """`negative` with a `share` of the anchors' negatives redrawn from their own family (`family`: the same
@@ -460,169 +434,39 @@ def first_node_share(model: GraphEncoder, graphs: list[Data]) -> dict[str, float
             "graphs": len(graphs), "first_label": int(torch.bincount(labels).argmax())}
 
 
-def leave_one_out_recall(emb: torch.Tensor, settings: np.ndarray) -> float:
-    """Share of graphs whose nearest other graph is of the same setting (validation metric)."""
-    d = torch.cdist(emb, emb)
-    d.fill_diagonal_(float("inf"))
-    nn_idx = d.argmin(dim=1).cpu().numpy()
-    return float((np.asarray(settings)[nn_idx] == np.asarray(settings)).mean())
-
-
-def leave_one_out_map(emb: torch.Tensor, settings: np.ndarray) -> float:
-    """Mean average precision of leave-one-out retrieval: each item queries all others, its own setting's items are
-    the relevant ones (items alone in their setting are left out). Unlike recall@1 it moves with every rank, so it
-    does not saturate once each item's nearest neighbour is right."""
-    codes = torch.as_tensor(np.unique(np.asarray(settings), return_inverse=True)[1].reshape(-1), device=emb.device)
-    d = torch.cdist(emb, emb)
-    d.fill_diagonal_(float("inf"))
-    order = d.argsort(dim=1, stable=True)[:, :-1]  # every other item, nearest first (the item itself last)
-    hits = (codes[order] == codes[:, None]).to(emb.dtype)
-    relevant = hits.sum(dim=1)
-    ranks = torch.arange(1, hits.shape[1] + 1, device=emb.device, dtype=emb.dtype)
-    ap = (hits * hits.cumsum(dim=1) / ranks).sum(dim=1) / relevant.clamp_min(1)
-    keep = relevant > 0
-    return float(ap[keep].mean()) if bool(keep.any()) else float("nan")
-
-
-class EarlyStopping:
-    """Validation after each epoch (leave-one-out recall@1 and mean average precision on the validation settings,
-    triplet loss on fixed validation triplets), the history, the model kept, and the stop.
-
-    Which epoch's model is kept is `select` (`monolib.params.SELECT`): the best validation recall@1 (ties: the lower
-    validation loss), the best mean average precision (ties likewise), the lowest validation loss, or ``last`` (a
-    fixed schedule: every epoch replaces the one before, and training runs all its epochs). Epochs before
-    `min_epochs` are recorded but neither kept nor counted; training stops after `patience` counted epochs without
-    a better score. Shared by every encoder trained with the triplet loss (graphs here, images in
-    `monolib.retrieval.baselines` and `monolib.retrieval.pretrained`)."""
-
-    def __init__(self, patience: int, seed: int, model: nn.Module, select: str = "val_recall", min_epochs: int = 1):
-        self.patience, self.seed, self.select, self.min_epochs = patience, seed, select, min_epochs
-        self.best: Optional[tuple] = None
-        self.best_state, self.best_epoch, self.bad_epochs = copy.deepcopy(model.state_dict()), 0, 0
-        self.history: list[dict] = []
-
-    def score(self, row: dict) -> tuple:
-        """The score of an epoch's record under `select` (higher is better; NaN recall or precision counts 0)."""
-        zero = lambda v: 0.0 if np.isnan(v) else v  # noqa: E731
-        if self.select == "last":
-            return (row["epoch"],)
-        if self.select == "val_loss":
-            return (-row["val_loss"],)
-        return (zero(row["val_map" if self.select == "val_map" else "val_recall@1"]), -row["val_loss"])
-
-    def step(self, model: nn.Module, epoch: int, train_loss: float, val_emb, val_settings, loss_fn,
-             progress: bool = False, extra: Optional[dict] = None) -> bool:
-        """Record the epoch (with `extra` columns); True when training should stop."""
-        val_settings = np.asarray(val_settings)
-        if val_emb is not None and len(set(val_settings)) > 1:
-            val_recall, val_map = leave_one_out_recall(val_emb, val_settings), leave_one_out_map(val_emb, val_settings)
-            va, vp, vn = draw_triplets(val_settings, np.random.default_rng(self.seed + 1))
-            val_loss = float(loss_fn(val_emb[va], val_emb[vp], val_emb[vn]))
-        else:
-            val_recall, val_map, val_loss = float("nan"), float("nan"), train_loss
-        row = {"epoch": epoch, "train_loss": train_loss, "val_loss": val_loss, "val_recall@1": val_recall,
-               "val_map": val_map, **(extra or {})}
-        if progress:
-            log.info("epoch %d loss %.4f val loss %.4f val recall@1 %.3f val map %.3f", epoch, train_loss, val_loss,
-                     val_recall, val_map)
-        return self.advance(row, model)
-
-    def advance(self, row: dict, model: nn.Module) -> bool:
-        """Record an epoch's row (``epoch``, ``val_loss``, ``val_recall@1``, ``val_map``), keep `model`'s state when
-        it scores best; True when training should stop. Replaying recorded rows through it tells which epoch a rule
-        would have kept (`monolib.retrieval.model_selection`)."""
-        self.history.append(row)
-        if row["epoch"] < self.min_epochs:
-            return False
-        score = self.score(row)
-        if self.best is None or score > self.best:
-            self.best, self.best_epoch, self.bad_epochs = score, row["epoch"], 0
-            self.best_state = copy.deepcopy(model.state_dict())
-            return False
-        self.bad_epochs += 1
-        return self.bad_epochs >= self.patience
-
-
-def epoch_lr(spec, epoch: int) -> float:
-    """The learning rate of `epoch` (1-based) under `spec.schedule`: `spec.lr` throughout (``constant``), or from
-    `spec.lr` at epoch 1 down a half cosine towards 0 after the last of `spec.epochs` (``cosine``)."""
-    if spec.schedule == "cosine":
-        return spec.lr * 0.5 * (1.0 + np.cos(np.pi * (epoch - 1) / spec.epochs))
-    return spec.lr
-
-
-def set_epoch_lr(opt: torch.optim.Optimizer, spec, epoch: int) -> None:
-    """Every parameter group of `opt` at `epoch_lr(spec, epoch)`."""
-    for group in opt.param_groups:
-        group["lr"] = epoch_lr(spec, epoch)
-
-
-def stopper_of(spec, seed: int, model: nn.Module) -> EarlyStopping:
-    """The `EarlyStopping` of a training spec (`GCNSpec`: patience, select, min_epochs)."""
-    return EarlyStopping(spec.patience, seed, model, spec.select, spec.min_epochs)
-
-
-@dataclass
-class TrainResult:
-    model: GraphEncoder
-    history: list[dict] = field(default_factory=list)
-    best_epoch: int = 0
-    seconds: float = 0.0
-
-
-def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, seed: int, threads: int = 2,
-          progress: bool = False, deterministic: bool = True, on_epoch=None) -> TrainResult:
-    """Train the encoder with the triplet loss; keep the model that `spec`'s selection chooses (`EarlyStopping`).
-    `on_epoch(model)`, when given, runs after each epoch's validation (the model in eval mode) and returns extra
-    columns for that epoch's history row (a curve of the test metric, say); it must not draw from the seed's
-    random streams, so that the training is the same with and without it."""
-    torch.set_num_threads(threads)
-    seed_everything(seed, deterministic)
-    rng = np.random.default_rng(seed)
-    dev = device()
-    model = GraphEncoder(spec)
-    model.set_colour_stats(train_graphs)
-    model.to(dev)
-    opt = torch.optim.Adam(model.parameters(), lr=spec.lr, weight_decay=spec.weight_decay)
-    loss_fn = nn.TripletMarginLoss(margin=spec.margin, p=2)
-    settings = np.array([g.setting for g in train_graphs])
-    val_settings = np.array([g.setting for g in val_graphs])
-    stopper = stopper_of(spec, seed, model)
-    pool = GraphPool(train_graphs)
-    t0 = time.perf_counter()
-    for epoch in range(1, spec.epochs + 1):
-        set_epoch_lr(opt, spec, epoch)
-        model.train()
-        losses, seen = [], 0
+def graph_batches(spec: GCNSpec, pool: GraphPool, settings: np.ndarray):
+    """The batch function (`monolib.retrieval.training.train`'s ``epoch_batches(rng, gen)``) of `spec.mining` over
+    the training graphs held in `pool` (of `settings`): the paper's random triplets (`family`: with a share of the
+    negatives redrawn from the anchor's family, `family_negatives`), or batches of a few graphs of each of a few
+    settings (`batch_hard`) or families (`batch_hard_family`) under the batch-hard loss. Every draw of an epoch is
+    made when the function is called, from `rng`."""
+    def epoch_batches(rng: np.random.Generator, gen: torch.Generator):
         if spec.mining in ("batch_hard", "batch_hard_family"):
             draw = batch_hard_batches if spec.mining == "batch_hard" else family_batches
-            for idx in draw(settings, spec.batch_size, rng):
-                z = model(pool.batch(idx).to(dev))
-                loss = batch_hard_loss(z, settings[idx], spec.margin)
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                losses.append(loss.item() * len(idx))
-                seen += len(idx)
-        else:
-            a, p, n = draw_triplets(settings, rng)
-            if spec.mining == "family":
-                n = family_negatives(settings, n, spec.family_share, rng)
-            perm = rng.permutation(len(a))
-            for s in range(0, len(perm), spec.batch_size):
-                idx = perm[s : s + spec.batch_size]
-                b = len(idx)
-                z = model(pool.batch(np.concatenate([a[idx], p[idx], n[idx]])).to(dev))
-                loss = loss_fn(z[:b], z[b : 2 * b], z[2 * b :])
-                opt.zero_grad()
-                loss.backward()
-                opt.step()
-                losses.append(loss.item() * b)
-                seen += b
-        train_loss = sum(losses) / max(seen, 1)
-        val_emb = embed(model, val_graphs) if len(val_graphs) else None
-        extra = on_epoch(model) if on_epoch is not None else None
-        if stopper.step(model, epoch, train_loss, val_emb, val_settings, loss_fn, progress, extra):
-            break
-    model.load_state_dict(stopper.best_state)
-    return TrainResult(model, stopper.history, stopper.best_epoch, time.perf_counter() - t0)
+            return (Batch(pool.batch(idx), partial(batch_hard_loss, settings=settings[idx], margin=spec.margin),
+                          len(idx)) for idx in draw(settings, spec.batch_size, rng))
+        a, p, n = draw_triplets(settings, rng)
+        if spec.mining == "family":
+            n = family_negatives(settings, n, spec.family_share, rng)
+        return triplet_batches(a, p, n, batch_size=spec.batch_size, rng=rng, margin=spec.margin,
+                               input_of=pool.batch)
+
+    return epoch_batches
+
+
+def train(train_graphs: list[Data], val_graphs: list[Data], spec: GCNSpec, *, seed: int, threads: int = 2,
+          progress: bool = False, deterministic: bool = True, on_epoch=None) -> TrainResult:
+    """Train the encoder of `spec` (its colour statistics from `train_graphs`) with the triplet loss and
+    `spec.mining`'s batches (`graph_batches`), by `spec`'s training rule (`monolib.retrieval.training.train`: the
+    schedule, the validation on `val_graphs` and the model kept). `on_epoch(model)`, when given, adds columns to
+    each epoch's history row (it must not draw from the seed's random streams)."""
+    def make_model() -> GraphEncoder:
+        model = GraphEncoder(spec)
+        model.set_colour_stats(train_graphs)
+        return model
+
+    pool = GraphPool(train_graphs)
+    batches = graph_batches(spec, pool, np.array([g.setting for g in train_graphs]))
+    return training.train(make_model, batches, rule=training_rule(spec), seed=seed, val_inputs=val_graphs,
+                          val_settings=np.array([g.setting for g in val_graphs]), embed=embed, threads=threads,
+                          deterministic=deterministic, progress=progress, on_epoch=on_epoch)

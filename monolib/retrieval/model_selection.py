@@ -40,6 +40,7 @@ from monolib.io import write_text
 from monolib.params import PAPER, TRAINED_IMAGE_METHODS as TRAINED_IMAGE, Study, key_of
 from monolib.perception import features
 from monolib.retrieval import baselines, cell, evaluate, gcn, pretrained
+from monolib.retrieval.training import EarlyStopping, training_rule
 
 INNER_FAMILIES = 8       # families of the training split held out as the inner test (16 settings, as the paper's)
 INNER_POSITIVES = 6      # database frames per inner test setting (the paper's 6); the others query
@@ -204,17 +205,19 @@ def _image_run(study: Study, method: str, seed: int, spec, with_test: bool, on_e
     test = _SHARED["test_frames"] if with_test else []
     part = selection.Selection(train, val, [])
     keys = [f.key for f in test]
+    rule = training_rule(spec)
     if method == "image_triplet":
         tr, va, inn, te = (baselines.image_tensor(fs) for fs in (train, val, inner, test))
         on_epoch = on_epoch_of(baselines.cnn_embed, inn, te, keys)
-        return baselines.train_cnn(tr, [f.setting for f in train], va, [f.setting for f in val], spec, seed,
+        return baselines.train_cnn(tr, [f.setting for f in train], va, [f.setting for f in val], rule=rule, seed=seed,
                                    threads=1, deterministic=study.deterministic, on_epoch=on_epoch)
     trunk = {k: features.load(study, fs) for k, fs in (("train", train), ("val", val), ("inner", inner),
                                                         ("test", test))}
     _, head = features.networks()
     on_epoch = on_epoch_of(pretrained.head_embed, torch.from_numpy(trunk["inner"]), torch.from_numpy(trunk["test"]),
                            keys)
-    return pretrained.train_head(head, trunk, part, spec, seed, 1, study.deterministic, on_epoch)
+    return pretrained.train_head(head, trunk, part, rule=rule, seed=seed, threads=1, deterministic=study.deterministic,
+                                 on_epoch=on_epoch)
 
 
 def _curve(job) -> list[dict]:
@@ -288,7 +291,8 @@ def curves(study: Study, configs=CONFIGS, seeds: Optional[list[int]] = None, wor
 
 def replay(history: pd.DataFrame, rule: Rule) -> tuple[int, int]:
     """(epoch kept, epochs run) of `rule` on one run's recorded history (epochs in order)."""
-    stopper = gcn.EarlyStopping(rule.patience, 0, nn.Identity(), rule.select, rule.min_epochs)
+    stopper = EarlyStopping(patience=rule.patience, seed=0, model=nn.Identity(), select=rule.select,
+                            min_epochs=rule.min_epochs)
     for row in history[history["epoch"] <= rule.epochs].to_dict("records"):
         if stopper.advance(row, nn.Identity()):
             break

@@ -13,8 +13,8 @@ stride 32, 6 x 8 positions at 256x192).
 - `imagenet_triplet`: the learnt image baseline from ImageNet: the head (initialised from ImageNet) and GeM,
   L2-normalised (`TRIPLET_OUT`: no projection), fine-tuned with the GCN's triplet loss, triplets and split, trained
   as the study's `image_training.imagenet_triplet` says (its learning rate and epochs, chosen on the training split
-  by `monolib bench selection`) (`monolib.retrieval.baselines.train_encoder`, the loop of the from-scratch
-  `image_triplet`). The trunk stays
+  by `monolib bench selection`) (`monolib.retrieval.training.train`, the loop of every triplet encoder, over the
+  from-scratch `image_triplet`'s batches). The trunk stays
   frozen, as NetVLAD trains only the last convolutional block of its network (Arandjelović et al., CVPR 2016):
   its features are computed once per frame, so that the fine-tuning fits the study's CPU budget; the augmentation
   is a horizontal flip of the feature map (colour jitter would need the trunk again).
@@ -33,7 +33,9 @@ from torch import nn
 from monolib import methods
 from monolib.device import device
 from monolib.perception import features
-from monolib.retrieval.baselines import seeded_kmeans, train_encoder
+from monolib.retrieval import training
+from monolib.retrieval.baselines import image_batches, seeded_kmeans
+from monolib.retrieval.training import TrainingRule, TrainResult, training_rule
 
 METHODS = methods.IMAGENET  # (the registry's list of the image methods that read ImageNet features)
 GEM_P = 3.0
@@ -166,22 +168,24 @@ def _flip(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     return torch.where(flip[:, None, None, None], x.flip(3), x)
 
 
-def train_head(head: nn.Module, trunk: dict, selection, spec, seed: int, threads: int, deterministic: bool = True,
-               on_epoch=None):
-    """`train_encoder` of the `HeadEncoder` over `head` on float16 trunk features (`trunk`: {"train", "val"}) of
-    the selection's frames, flipped at random: the training of `imagenet_triplet`."""
-    return train_encoder(lambda: HeadEncoder(head, TRIPLET_OUT), torch.from_numpy(trunk["train"]),
-                         [f.setting for f in selection.train], torch.from_numpy(trunk["val"]),
-                         [f.setting for f in selection.val], spec, seed, _flip, head_embed, threads, deterministic,
-                         on_epoch)
+def train_head(head: nn.Module, trunk: dict, selection, *, rule: TrainingRule, seed: int, threads: int,
+               deterministic: bool = True, on_epoch=None) -> TrainResult:
+    """The `HeadEncoder` over `head` trained by `rule` (`monolib.retrieval.training.train`) on float16 trunk
+    features (`trunk`: {"train", "val"}) of the selection's frames, flipped at random: the training of
+    `imagenet_triplet`. `on_epoch(model)`, when given, adds columns to each epoch's history row."""
+    batches = image_batches(torch.from_numpy(trunk["train"]), [f.setting for f in selection.train], rule, _flip)
+    return training.train(lambda: HeadEncoder(head, TRIPLET_OUT), batches, rule=rule, seed=seed,
+                          val_inputs=torch.from_numpy(trunk["val"]), val_settings=[f.setting for f in selection.val],
+                          embed=head_embed, threads=threads, deterministic=deterministic, on_epoch=on_epoch)
 
 
-def triplet_embed(study, selection, trunk, head: nn.Module, seed: int, spec=None):
+def triplet_embed(study, selection, trunk, head: nn.Module, seed: int, rule: TrainingRule | None = None):
     """(test embeddings, extra, history, state) for `imagenet_triplet`; `trunk`: {split: float16 features};
-    `spec` defaults to the study's spec of the method (`Study.gcn_spec`: `gcn:` with `image_training`)."""
-    spec = spec or study.gcn_spec("imagenet_triplet")
+    `rule` defaults to the study's training of the method (`Study.gcn_spec`: `gcn:` with `image_training`)."""
+    rule = rule or training_rule(study.gcn_spec("imagenet_triplet"))
     te = torch.from_numpy(trunk["test"])
-    result = train_head(head, trunk, selection, spec, seed, study.threads, study.deterministic)
+    result = train_head(head, trunk, selection, rule=rule, seed=seed, threads=study.threads,
+                        deterministic=study.deterministic)
     emb = head_embed(result.model, te).numpy().astype(np.float32)
     extra = {"best_epoch": result.best_epoch, "epochs_run": len(result.history), "train_s": result.seconds,
              "trained_parameters": int(sum(p.numel() for p in result.model.parameters()))}
