@@ -120,8 +120,9 @@ def plot(t: pd.DataFrame, path: Path) -> Path:
     for ax, leg in zip(axes, legs):
         g = t[t["leg"] == leg]
         sizes = list(dict.fromkeys(g["size"]))
-        for i, ((method, thr), rows) in enumerate(g.groupby(["method", "threshold"], sort=False)):
-            x = [sizes.index(s) for s in rows["size"]]
+        groups = list(g.groupby(["method", "threshold"], sort=False))
+        for i, ((method, thr), rows) in enumerate(groups):
+            x = [sizes.index(s) + 0.03 * (i - (len(groups) - 1) / 2) for s in rows["size"]]  # bars side by side
             colour = f"C{i}"
             ax.errorbar(x, rows["mean"], yerr=[rows["mean"] - rows["ci_lo"], rows["ci_hi"] - rows["mean"]],
                         color=colour, marker="o", capsize=3, label=f"{method}, {tables.threshold_label(thr)}")
