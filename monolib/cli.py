@@ -318,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except Exception as exc:
         from monolib.localize import LocalizeError  # deferred: torch
-        from monolib.study.runner import NotebookFailed  # deferred: torch
+        from monolib.study.notebooks import NotebookFailed  # deferred: torch
 
         if isinstance(exc, (LocalizeError, DataFileError, CacheUnreadable)):
             print(f"error: {exc}", file=sys.stderr)

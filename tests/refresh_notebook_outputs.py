@@ -26,7 +26,7 @@ def checked_outputs(name: str, runs: Path) -> dict[str, list]:
     import nbformat
     from nbclient import NotebookClient
 
-    from monolib.study.runner import kernel_config
+    from monolib.study.notebooks import kernel_config
 
     os.environ.update(MONOLIB_RUNS=str(runs / "runs"), MONOLIB_FIGURES=str(runs / "figures"), MPLBACKEND="agg",
                       PYTHONHASHSEED="0")

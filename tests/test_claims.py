@@ -12,7 +12,7 @@ import yaml
 
 from monolib import paths
 from monolib.params import load_study
-from monolib.report import claims, statistics, verify
+from monolib.report import bootstrap, claims, verify
 from monolib.retrieval import grid
 
 
@@ -57,8 +57,8 @@ def toy():
     qv = synthetic_queries({("good", "s1", 0): 0.9, ("bad", "s1", 0): 0.15})
     twin = qv[qv["method"] == "good"].assign(method="good2")
     qv = pd.concat([qv, twin], ignore_index=True)
-    boot = statistics.Bootstrap.for_queries(qv, 400)
-    return qv, statistics.intervals(qv, boot), {"paper": boot}
+    boot = bootstrap.Bootstrap.for_queries(qv, 400)
+    return qv, bootstrap.intervals(qv, boot), {"paper": boot}
 
 
 def test_relations_read_the_difference_interval():
@@ -124,17 +124,17 @@ def test_stability_is_the_share_of_seed_draws_that_keep_the_verdict(tmp_path):
                              n_queries=10, seed=3).assign(seed=3)
     null.loc[null["method"] == "meh", "recall@1"] = null.loc[null["method"] == "good", "recall@1"].to_numpy()
     qv = pd.concat([*strong, null], ignore_index=True)
-    boot = statistics.Bootstrap.for_queries(qv, 400)
+    boot = bootstrap.Bootstrap.for_queries(qv, 400)
     path = claims_file(tmp_path, [claim("up", A, {**B, "method": "meh"}, "above")])
-    r = claims.evaluate(claims.load("toy", path), qv, statistics.intervals(qv, boot), {"paper": boot}).iloc[0]
-    iv = statistics.seed_resampled_intervals(statistics.rows_of(qv, "good", "s1", 0), statistics.rows_of(
+    r = claims.evaluate(claims.load("toy", path), qv, bootstrap.intervals(qv, boot), {"paper": boot}).iloc[0]
+    iv = bootstrap.seed_resampled_intervals(bootstrap.rows_of(qv, "good", "s1", 0), bootstrap.rows_of(
         qv, "meh", "s1", 0), boot, ["recall@1"])
-    assert iv.shape == (statistics.STABILITY_RESAMPLES, 2) and r["holds"]
-    draws = np.random.default_rng([statistics.BOOT_SEED, 2]).integers(0, 4, size=(statistics.STABILITY_RESAMPLES, 4))
+    assert iv.shape == (bootstrap.STABILITY_RESAMPLES, 2) and r["holds"]
+    draws = np.random.default_rng([bootstrap.BOOT_SEED, 2]).integers(0, 4, size=(bootstrap.STABILITY_RESAMPLES, 4))
     mostly_null = (draws == 3).sum(axis=1) >= 3  # the draws in which the null seed counts three times or four
     assert mostly_null.any() and not (iv[mostly_null, 0] > 0).any()
     assert r["stability"] == pytest.approx(float(np.mean(iv[:, 0] > 0))) and r["stability"] <= 1 - mostly_null.mean()
-    one_seed = claims.evaluate(claims.load("toy", path), strong[0], statistics.intervals(strong[0], boot),
+    one_seed = claims.evaluate(claims.load("toy", path), strong[0], bootstrap.intervals(strong[0], boot),
                                {"paper": boot})
     assert np.isnan(one_seed["stability"].iloc[0])  # one seed: nothing to resample
 

@@ -170,14 +170,15 @@ def test_each_task_checks_its_worker_again_before_it_computes(tmp_path, part):
     library upgraded under a running worker): the task compares afresh and refuses before the notebook runs."""
     import json
 
-    from monolib.study import cluster, runner as study
+    from monolib.retrieval.grid import CellSpec
+    from monolib.study import cluster, notebooks
 
     study_file = ground_truth_study(tmp_path, "smoke_dask_task", [1], [0])
     client_side = json.dumps(_changed(part)(str(study_file)))
     env = {**cluster.task_environment(), cluster.FINGERPRINT_ENV: client_side}
     out = tmp_path / "cell.ipynb"
     with pytest.raises(StudyError, match=rf"no longer computes cells as the client: {WORDS[part]}"):
-        study.run_cell_notebook(str(study_file), study.CellSpec("gcn", "s1", 1.0, 0), str(out), 60, env)
+        notebooks.run_cell_notebook(str(study_file), CellSpec("gcn", "s1", 1.0, 0), str(out), 60, env)
     assert not out.exists()                                          # refused before the notebook ran
     cluster.check_fingerprint(str(study_file), json.dumps(cluster.fingerprint(str(study_file))))  # the same: passes
 

@@ -200,17 +200,17 @@ def test_the_report_over_folds(tmp_path, release, monkeypatch):
 def test_the_fold_bootstrap_resamples_folds():
     """Folds of different means: the interval over folds is wider than within the folds alone, and a group against
     itself differs by exactly 0."""
-    from monolib.report import statistics
+    from monolib.report import bootstrap
 
     rows = [(f, s, f"ai_{f:03d}_{n:03d}", q, 100.0 * (f == 0) + (q % 2)) for f in range(4) for s in (0, 1)
             for n in range(3) for q in range(5)]
     qv = pd.DataFrame(rows, columns=["fold", "seed", "setting", "query", "recall@1"]).assign(
         method="gcn", scenario="s1", threshold=1.0, protocol="paper")
-    fboot = statistics.FoldBootstrap.for_queries(qv, n_boot=200)
-    iv = statistics.fold_intervals(qv, fboot).iloc[0]
+    fboot = bootstrap.FoldBootstrap.for_queries(qv, n_boot=200)
+    iv = bootstrap.fold_intervals(qv, fboot).iloc[0]
     assert iv["mean"] == pytest.approx(np.mean([100.4, 0.4, 0.4, 0.4]))
     assert iv["ci_lo"] < 10 and iv["ci_hi"] > 40  # one fold of four at 100: the fold draw decides
-    same = statistics.fold_paired_difference(qv, qv, fboot).iloc[0]
+    same = bootstrap.fold_paired_difference(qv, qv, fboot).iloc[0]
     assert same["diff"] == 0 and same["ci_lo"] == 0 and same["ci_hi"] == 0 and not same["significant"]
 
 

@@ -69,7 +69,7 @@ def test_warm_and_cold_kernels_give_the_same_files(smoke_study, tmp_path):
 
 
 def run_cell(cell: tuple, out: Path) -> None:
-    from monolib.study.runner import CELL_NOTEBOOK, execute
+    from monolib.study.notebooks import CELL_NOTEBOOK, execute
 
     method, scenario, threshold, seed = cell
     execute(CELL_NOTEBOOK, out / "cell.ipynb", {"study": "smoke", "method": method, "scenario": scenario,
@@ -99,7 +99,7 @@ def test_a_cell_does_not_depend_on_the_cells_before_it(smoke_study, tmp_path):
 def test_a_kernel_killed_during_a_cell_is_replaced_and_the_cell_run_again(tmp_path):
     """The first run of a notebook kills its own kernel half-way (SIGKILL, from outside): the runner discards the
     dead kernel, runs the notebook again in a fresh one, and it completes there."""
-    from monolib.study.runner import execute
+    from monolib.study.notebooks import execute
 
     marker = tmp_path / "pid"
     nb = nbformat.v4.new_notebook()

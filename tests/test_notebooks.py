@@ -64,7 +64,7 @@ def test_the_notebooks_and_their_parameters_are_those_the_code_expects():
     every notebook's defaults are the smoke study and values that its calls accept; every parameter is used."""
     import papermill
 
-    from monolib.study.runner import CELL_NOTEBOOK, REPORT_NOTEBOOK, check_notebook_parameters
+    from monolib.study.notebooks import CELL_NOTEBOOK, REPORT_NOTEBOOK, check_notebook_parameters
 
     assert {p.stem for p in NOTEBOOKS} == {"ablation_cell", "report", "data", "segmentation", "depth", "localize"}
     check_notebook_parameters(CELL_NOTEBOOK, {"study", "method", "scenario", "threshold", "seed", "out_dir"})

@@ -84,9 +84,10 @@ def test_lines_unless_a_terminal_or_told_otherwise(monkeypatch, capsys):
 def test_a_failed_notebook_is_one_error_line_with_its_cell_and_executed_notebook(monkeypatch, capsys):
     from monolib import cli
     from monolib.study import runner
+    from monolib.study.notebooks import NotebookFailed
 
     def fail(*args, **kwargs):
-        raise runner.NotebookFailed("ablation_cell.ipynb: In [3] (x = 1 / 0) raised ZeroDivisionError: division by zero"
+        raise NotebookFailed("ablation_cell.ipynb: In [3] (x = 1 / 0) raised ZeroDivisionError: division by zero"
                                    "\n  executed notebook: /somewhere/cell.ipynb")
 
     monkeypatch.setattr(runner, "run", fail)
@@ -98,8 +99,8 @@ def test_a_failed_notebook_is_one_error_line_with_its_cell_and_executed_notebook
 
 @pytest.mark.slow
 def test_execute_names_the_failed_cell_and_its_notebook_without_transport_warnings(tmp_path):
-    """A real kernel through the runner's `execute`: the cell that raised, its error and the executed notebook
-    (written by papermill, traceback included) in the message; no "running over TCP without encryption"."""
+    """A real kernel through `monolib.study.notebooks.execute`: the cell that raised, its error and the executed
+    notebook (written by papermill, traceback included) in the message; no "running over TCP without encryption"."""
     nb = {"cells": [
         {"cell_type": "code", "execution_count": None, "id": "0", "metadata": {"tags": ["parameters"]}, "outputs": [],
          "source": ["n = 1"]},
@@ -110,7 +111,7 @@ def test_execute_names_the_failed_cell_and_its_notebook_without_transport_warnin
     (tmp_path / "fails.ipynb").write_text(json.dumps(nb))
     script = textwrap.dedent(f"""
         from pathlib import Path
-        from monolib.study.runner import NotebookFailed, execute
+        from monolib.study.notebooks import NotebookFailed, execute
         try:
             execute(Path({str(tmp_path / 'fails.ipynb')!r}), Path({str(tmp_path / 'out' / 'fails.ipynb')!r}),
                     {{"n": 41}}, timeout=120)

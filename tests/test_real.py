@@ -103,7 +103,7 @@ def test_a_study_of_folds_only_runs_and_reports_over_folds(tmp_path, monkeypatch
     run, and the report (written from another working directory) holds the tables over folds as intervals.csv,
     the edge penalty of both encoders beside the committed mini-Hypersim's, reproduces.md and the claims."""
     from monolib.io import read_json
-    from monolib.report import claims, statistics
+    from monolib.report import bootstrap, claims
     from monolib.report import folds as fold_report
     from monolib.report.write import write_report
     from monolib.retrieval.grid import grid
@@ -147,11 +147,11 @@ def test_a_study_of_folds_only_runs_and_reports_over_folds(tmp_path, monkeypatch
          "b": {"method": "gcn", "scenario": "s1", "threshold": 0}, "relation": "not_above",
          "sentence": "gcn at 1 m ({a}) against no edges ({b})."}]}))
     qv = fold_report.fold_query_table(study)
-    fboot = statistics.FoldBootstrap.for_queries(qv, 50)
+    fboot = bootstrap.FoldBootstrap.for_queries(qv, 50)
     table = claims.evaluate(claims.load("real_test", claims_file), qv, iv, {"paper": fboot})
     row = iv[(iv["method"] == "gcn") & (iv["threshold"] == 1) & (iv["metric"] == "recall") & (iv["k"] == 1)].iloc[0]
     assert table["a_mean"].iloc[0] == pytest.approx(row["mean"])
-    diff = statistics.fold_paired_difference(statistics.rows_of(qv, "gcn", "s1", 1.0), statistics.rows_of(
+    diff = bootstrap.fold_paired_difference(bootstrap.rows_of(qv, "gcn", "s1", 1.0), bootstrap.rows_of(
         qv, "gcn", "s1", 0.0), fboot, ["recall@1"]).iloc[0]
     assert (table["diff_lo"].iloc[0], table["diff_hi"].iloc[0]) == (diff["ci_lo"], diff["ci_hi"])
 

@@ -16,7 +16,7 @@ matplotlib.use("agg")
 
 from monolib import paths
 from monolib.report import tables
-from monolib.report import figures, results, statistics, write as report
+from monolib.report import bootstrap, comparisons, figures, results, write as report
 
 A, B, C = "ai_001_001", "ai_001_002", "ai_002_001"
 
@@ -182,7 +182,7 @@ def test_collect_without_cells_is_one_clear_error(tmp_path, monkeypatch):
 
 
 def test_summary_mean_std_n(study):
-    s = statistics.summary(results.collect(study))
+    s = bootstrap.summary(results.collect(study))
     row = s[(s.method == "gcn") & (s.scenario == "s2") & (s.threshold == math.inf) & (s.metric == "precision")
             & (s.k == 4)].iloc[0]
     vals = [100.0 * (0 + 6) / 24, 100.0 * (1 + 6) / 24]       # no query right at rank 1 (seed 1: A1)
@@ -349,7 +349,7 @@ def query_rows(hit_of, seeds=(0, 1, 2), **kw) -> pd.DataFrame:
 
 def interval_of(rows: pd.DataFrame, col: str = "recall@1", n_boot: int = 1000):
     cols = results.metric_cols(rows)
-    boot = statistics.Bootstrap(rows["seed"].nunique(), rows["setting"].nunique(),
+    boot = bootstrap.Bootstrap(rows["seed"].nunique(), rows["setting"].nunique(),
                             int(rows.groupby(["seed", "setting"]).size().max()), n_boot)
     iv = boot.interval(*boot.cube(rows, cols))
     j = cols.index(col)
@@ -379,8 +379,8 @@ def test_interval_half_the_settings_hit_is_wide_around_50():
 
 def test_paired_difference_of_a_cell_with_itself_is_exactly_zero():
     rows = query_rows(lambda s, i, sd: (i + sd) % 3 == 0)
-    boot = statistics.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0))
-    d = statistics.paired_difference(rows, rows, boot)
+    boot = bootstrap.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0))
+    d = bootstrap.paired_difference(rows, rows, boot)
     assert (d["diff"] == 0).all() and (d["ci_lo"] == 0).all() and (d["ci_hi"] == 0).all()
     assert not d["significant"].any()
     assert d["n_seeds"].tolist() == [3] * 4 and d["n_queries"].tolist() == [3 * 6 * 5] * 4
@@ -388,7 +388,7 @@ def test_paired_difference_of_a_cell_with_itself_is_exactly_zero():
 
 def test_same_resample_indices_for_every_group():
     rows = query_rows(lambda s, i, sd: (i * 7 + sd + SETTINGS.index(s)) % 4 == 0)
-    boot = statistics.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0), n_boot=200)
+    boot = bootstrap.Bootstrap.for_queries(rows.assign(method="gcn", scenario="s1", threshold=1.0), n_boot=200)
     values, nq = boot.cube(rows, ["recall@1"])
     a = boot.resample(values, nq)
     b = boot.resample(values + 5.0, nq)            # another group of the same shape: shifted by exactly 5
@@ -450,10 +450,10 @@ def rich(tmp_path, monkeypatch):
 
 def test_threshold_tests_mark_the_clearly_worse_threshold(rich):
     qv = results.query_table(rich.name)
-    boot = statistics.Bootstrap.for_queries(qv)
-    iv = statistics.intervals(qv, boot)
-    assert list(iv.columns) == statistics.INTERVAL_COLUMNS and set(iv["n_seeds"]) == {3}
-    tt = statistics.threshold_tests(qv, iv, boot)
+    boot = bootstrap.Bootstrap.for_queries(qv)
+    iv = bootstrap.intervals(qv, boot)
+    assert list(iv.columns) == bootstrap.INTERVAL_COLUMNS and set(iv["n_seeds"]) == {3}
+    tt = comparisons.threshold_tests(qv, iv, boot)
     row = tt[(tt.method == "gcn") & (tt.scenario == "s1") & (tt.metric == "recall") & (tt.k == 1)].iloc[0]
     assert row["threshold"] == math.inf and row["best_threshold"] == 1.0
     assert row["diff"] < -50 and row["ci_hi"] < 0 and row["significant"]
@@ -469,7 +469,7 @@ def test_rich_report_tables_ablation_light_depth(rich, capsys):
         assert written[name].is_file(), name
     res = pd.read_csv(written["results"])
     assert list(res.columns) == results.RESULT_COLUMNS and not res.duplicated(results.RESULT_COLUMNS[:-1]).any()
-    assert list(pd.read_csv(written["intervals"]).columns) == statistics.INTERVAL_COLUMNS
+    assert list(pd.read_csv(written["intervals"]).columns) == bootstrap.INTERVAL_COLUMNS
 
     md = written["table1_md"].read_text()
     assert "s1x2" not in md                                  # in_tables: false
@@ -506,7 +506,7 @@ def test_rich_report_tables_ablation_light_depth(rich, capsys):
     # the two cameras: s1 (the study's monograph) against its exact twin, threshold by threshold, paired
     assert "in the `monograph` camera" in md and "s1_exact" not in md
     cams = pd.read_csv(written["projection_csv"])
-    assert list(cams.columns) == statistics.PROJECTION_COLUMNS
+    assert list(cams.columns) == comparisons.PROJECTION_COLUMNS
     assert set(zip(cams["method"], cams["scenario"], cams["pair"], cams["threshold"])) == {
         ("gcn", "s1", "s1_exact", 1.0), ("gcn", "s1", "s1_exact", math.inf)}
     one = cams[cams.threshold == 1.0].iloc[0]
@@ -600,7 +600,7 @@ def test_every_number_recomputed_per_protocol_with_the_protocol_enforced(two):
             for _, row in rows.iterrows():
                 assert row.value == pytest.approx(again[f"{row.metric}@{int(row.k)}"], abs=1e-3)
     iv = pd.read_csv(written["intervals"])
-    assert list(iv.columns) == statistics.INTERVAL_COLUMNS and set(iv["protocol"]) == {"paper", "siblings"}
+    assert list(iv.columns) == bootstrap.INTERVAL_COLUMNS and set(iv["protocol"]) == {"paper", "siblings"}
     tests = pd.read_csv(written["threshold_tests"])
     assert set(tests["protocol"]) == {"paper", "siblings"}
 
@@ -651,7 +651,7 @@ def test_report_of_two_protocols(two):
                    & (res.k == 1)]["value"].mean()
         assert row["mean"] == pytest.approx(want, abs=1e-3)
     prot = pd.read_csv(written["protocols_csv"])
-    assert list(prot.columns) == statistics.PROTOCOLS_COLUMNS
+    assert list(prot.columns) == comparisons.PROTOCOLS_COLUMNS
     g = prot[prot.method == "gcn"]
     assert set(g["threshold"]) == {1.0} and list(g["protocol"]) == ["paper", "siblings"]   # best paper threshold
     assert list(g["n_settings"]) == [6, 4]
@@ -683,12 +683,12 @@ def confusion_rankings() -> pd.DataFrame:
 def protocols_rows(protocols=("paper", "siblings")) -> pd.DataFrame:
     rows = [(m, sc, t, p, "recall", 1, 50.0, 40.0, 60.0, 2, 4, 3) for m, sc, t in
             (("gcn", "s1", 1.0), ("color_hist", "rgb", math.inf)) for p in protocols]
-    return pd.DataFrame(rows, columns=statistics.PROTOCOLS_COLUMNS)
+    return pd.DataFrame(rows, columns=comparisons.PROTOCOLS_COLUMNS)
 
 
 def test_siblings_confusions_by_hand():
-    c = statistics.siblings_confusions(confusion_rankings(), protocols_rows())
-    assert list(c.columns) == statistics.CONFUSION_COLUMNS
+    c = comparisons.siblings_confusions(confusion_rankings(), protocols_rows())
+    assert list(c.columns) == comparisons.CONFUSION_COLUMNS
     assert list(zip(c["method"], c["threshold"])) == [("gcn", 1.0), ("color_hist", math.inf)]    # the table's order
     g = c.iloc[0]
     assert (g["queries"], g["right"], g["sibling"], g["other"], g["n_seeds"]) == (6, 3, 2, 1, 2)
@@ -703,11 +703,11 @@ def test_siblings_confusions_by_hand():
 
 
 def test_siblings_confusions_without_the_siblings_protocol_is_empty():
-    c = statistics.siblings_confusions(confusion_rankings(), protocols_rows(("paper",)))
-    assert c.empty and list(c.columns) == statistics.CONFUSION_COLUMNS
+    c = comparisons.siblings_confusions(confusion_rankings(), protocols_rows(("paper",)))
+    assert c.empty and list(c.columns) == comparisons.CONFUSION_COLUMNS
     right = confusion_rankings()
     right = right.assign(match_setting=right["query_setting"])        # every query right: no error to share
-    c = statistics.siblings_confusions(right, protocols_rows())
+    c = comparisons.siblings_confusions(right, protocols_rows())
     assert list(c["share_right"]) == [100.0, 100.0] and c["sibling_share_of_errors"].isna().all()
     assert "| 100.0 | 0.0 | 0.0 | – |" in tables.confusions_markdown(c)
 
@@ -864,7 +864,7 @@ def test_the_colour_table_sets_the_papers_number_beside_each_gcn_threshold():
                      "mean": 70.0, "ci_lo": 60.0, "ci_hi": 80.0, "pair_mean": 75.0, "pair_ci_lo": 65.0,
                      "pair_ci_hi": 85.0, "diff": 5.0, "diff_lo": -1.0, "diff_hi": 11.0, "significant": False,
                      "n_seeds": 5})
-    md = tables.colour_markdown(pd.DataFrame(rows, columns=statistics.COLOUR_COLUMNS), {"s1": "GT"})
+    md = tables.colour_markdown(pd.DataFrame(rows, columns=comparisons.COLOUR_COLUMNS), {"s1": "GT"})
     lines = [ln for ln in md.splitlines() if ln.startswith("| ")]
     assert lines[0].endswith("| Δ tonemapped - hdr | paper |")
     by_row = {tuple(c.strip() for c in ln.strip("|").split("|")[:2]): ln.strip("|").split("|")[-1].strip()

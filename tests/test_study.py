@@ -204,7 +204,8 @@ def test_cells_with_the_graphs_of_a_smaller_threshold_are_exact_copies(smoke_stu
     from monolib.graphs import stage as scenegraphs
     from monolib.graphs.build import at_threshold
     from monolib.retrieval import cell
-    from monolib.study.runner import CellSpec, grid, same_graphs
+    from monolib.study.copies import same_graphs
+    from monolib.study.runner import CellSpec, grid
 
     s = load_study("smoke")
     copied = [json.loads(f.read_text()) for f in cell_files("smoke")]
@@ -227,7 +228,8 @@ def test_cells_reading_the_inputs_of_another_scenario_are_exact_copies(smoke_stu
     """A scenario whose encoder inputs equal an earlier scenario's (here a twin of s4: the same sources) is copied
     from it cell by cell; running the copy for real gives the same files. Scenarios with other semantics are not."""
     from monolib.retrieval import cell
-    from monolib.study.runner import CellSpec, grid, same_graphs
+    from monolib.study.copies import same_graphs
+    from monolib.study.runner import CellSpec, grid
 
     data = {"name": "smoke_twin", "extends": "smoke", "thresholds": [0, 1], "seeds": [0],
             "scenarios": {"s4_twin": {"depth": "depth_b", "semantic": "deeplab", "label": "s4 again"}}}
@@ -420,7 +422,8 @@ def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_pat
 def test_threshold_zero_gives_graphs_without_edges_and_cells_that_run(smoke_study):
     from monolib.graphs import stage as scenegraphs
     from monolib.graphs.build import at_threshold
-    from monolib.study.runner import grid, same_graphs
+    from monolib.study.copies import same_graphs
+    from monolib.study.runner import grid
 
     s = load_study("smoke")
     assert s.thresholds[0] == 0.0
@@ -447,9 +450,10 @@ def test_threshold_zero_gives_graphs_without_edges_and_cells_that_run(smoke_stud
 def test_graph_sizes_table_of_the_smoke_study(smoke_study):
     """graph_sizes.csv: every scenario x threshold of the grid; nodes do not depend on the threshold, edges grow
     with it (0 at 0, every pair at inf), the means are those of the cached graphs, and `same_graphs_as` is the
-    runner's rule (`study.same_graphs`)."""
+    runner's rule (`monolib.study.copies.same_graphs`)."""
     from monolib.graphs import stage as scenegraphs
-    from monolib.study.runner import grid, same_graphs
+    from monolib.study.copies import same_graphs
+    from monolib.study.runner import grid
 
     s = load_study("smoke")
     fig = paths.figures_dir("smoke")

@@ -223,7 +223,7 @@ def load(study: Study, scenario: str, progress: bool = False, key: Optional[str]
 def identical_thresholds(pair_len: torch.Tensor, thresholds) -> dict[float, float]:
     """``{threshold: the smallest threshold with identical graphs}`` for the thresholds whose graphs equal those of
     a smaller one: no node pair (of `pair_len`, every pair of every graph) has a length between the two. Edges only
-    grow with the threshold, so equal edge totals mean equal graphs: the rule of `monolib.study.runner.same_graphs`."""
+    grow with the threshold, so equal edge totals mean equal graphs: the rule of `monolib.study.copies.same_graphs`."""
     out: dict[float, float] = {}
     source, source_edges = None, -1
     for t in sorted(set(float(t) for t in thresholds)):

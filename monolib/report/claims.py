@@ -13,8 +13,8 @@
       sentence: "`layout` on ground truth ({a}) is level with the colour histogram ({b})."
 
 Both cells of a claim belong to one protocol (the bootstrap pairs queries within a protocol, never across). The
-difference is mean(a) - mean(b) with the paired bootstrap's 95 % interval (`statistics.paired_difference`, the
-protocol's `statistics.Bootstrap`); the two means and their intervals are the tables' (``intervals.csv``).
+difference is mean(a) - mean(b) with the paired bootstrap's 95 % interval (`bootstrap.paired_difference`, the
+protocol's `bootstrap.Bootstrap`); the two means and their intervals are the tables' (``intervals.csv``).
 ``above`` holds when the difference's interval lies entirely above 0, ``below`` entirely below 0, ``level`` when
 it lies within +/- the claim's ``margin`` (points: equivalent within what the claim states, not merely "the
 interval contains 0"); ``not_above`` when it does not lie entirely above 0 (level or below), ``not_below`` when it does
@@ -23,7 +23,7 @@ CPU to another (training is not bit for bit across CPUs) can state on every one.
 without numbers: ``{a}`` and ``{b}`` become each cell's mean with its interval, ``{diff}`` the difference with its
 interval.
 
-Each claim's stability is the share of resamples of the seeds (`statistics.seed_resampled_intervals`) in which its
+Each claim's stability is the share of resamples of the seeds (`bootstrap.seed_resampled_intervals`) in which its
 verdict stays: a claim under `STABLE` hangs on the seeds drawn (and on the CPU, which trains each seed a little
 differently), so the study states it otherwise, gives it more seeds, or drops it.
 """
@@ -40,7 +40,7 @@ import yaml
 
 from monolib import io, paths
 from monolib.params import PAPER
-from monolib.report import results, statistics
+from monolib.report import bootstrap, results
 
 CLAIMS_FILE = paths.PARAMS / "claims.yaml"
 RELATIONS = ("above", "below", "level", "not_above", "not_below")
@@ -180,8 +180,8 @@ def evaluate(claims: list[Claim], qv: pd.DataFrame, iv: pd.DataFrame, boots: dic
              source: str = str(CLAIMS_FILE)) -> pd.DataFrame:
     """One row per claim (columns `COLUMNS`): both means with the tables' intervals, the paired difference a - b
     with its interval, and whether the relation holds. `qv`: per-query values of every protocol
-    (`results.query_table`); `iv`: their intervals; `boots`: each protocol's `statistics.Bootstrap` (a
-    `statistics.FoldBootstrap` for a study over folds: `qv` then has a ``fold`` column)."""
+    (`results.query_table`); `iv`: their intervals; `boots`: each protocol's `bootstrap.Bootstrap` (a
+    `bootstrap.FoldBootstrap` for a study over folds: `qv` then has a ``fold`` column)."""
     rows = []
     for c in claims:
         where = f"{source}: claim {c.id}"
@@ -190,10 +190,10 @@ def evaluate(claims: list[Claim], qv: pd.DataFrame, iv: pd.DataFrame, boots: dic
         a = _mean_of(iv, c.a, c.metric, f"{where}.a")
         b = _mean_of(iv, c.b, c.metric, f"{where}.b")
         boot = boots[c.a.protocol]  # over folds (a study cross-validated by volume alone): folds resampled too
-        pair = statistics.fold_paired_difference if isinstance(boot, statistics.FoldBootstrap) \
-            else statistics.paired_difference
-        ra = statistics.rows_of(qv, c.a.method, c.a.scenario, c.a.threshold, c.a.protocol)
-        rb = statistics.rows_of(qv, c.b.method, c.b.scenario, c.b.threshold, c.b.protocol)
+        pair = bootstrap.fold_paired_difference if isinstance(boot, bootstrap.FoldBootstrap) \
+            else bootstrap.paired_difference
+        ra = bootstrap.rows_of(qv, c.a.method, c.a.scenario, c.a.threshold, c.a.protocol)
+        rb = bootstrap.rows_of(qv, c.b.method, c.b.scenario, c.b.threshold, c.b.protocol)
         d = pair(ra, rb, boot, [c.metric])
         if d.empty:
             raise ClaimsError(f"{where}: cells a and b share no query of protocol {c.a.protocol}")
@@ -206,9 +206,9 @@ def evaluate(claims: list[Claim], qv: pd.DataFrame, iv: pd.DataFrame, boots: dic
 
 
 def stability(claim: Claim, a: pd.DataFrame, b: pd.DataFrame, boot, verdict: bool) -> float:
-    """The share of the seeds' resamples (`statistics.seed_resampled_intervals`) in which the claim's verdict is
+    """The share of the seeds' resamples (`bootstrap.seed_resampled_intervals`) in which the claim's verdict is
     `verdict`; NaN with one seed (nothing to resample)."""
-    iv = statistics.seed_resampled_intervals(a, b, boot, [claim.metric])
+    iv = bootstrap.seed_resampled_intervals(a, b, boot, [claim.metric])
     if not len(iv):
         return math.nan
     return float(sum(holds(claim.relation, lo, hi, claim.margin) == verdict for lo, hi in iv) / len(iv))
@@ -228,7 +228,7 @@ def _stability(r) -> str:
     return f"{r.stability:.2f}" + (" (**unstable**)" if r.stability < STABLE else "")
 
 
-def markdown(table: pd.DataFrame, study_name: str, n_boot: int = statistics.N_BOOT) -> str:
+def markdown(table: pd.DataFrame, study_name: str, n_boot: int = bootstrap.N_BOOT) -> str:
     """``claims.md``: each claim's sentence with its numbers, the difference, the relation, `holds` or `FAILS`,
     and its stability."""
     lines = [f"Claims of the `{study_name}` study (`params/claims.yaml`), recall or precision in %, mean [95 % "
@@ -236,7 +236,7 @@ def markdown(table: pd.DataFrame, study_name: str, n_boot: int = statistics.N_BO
              f"seeds, settings and queries. `above` holds when its interval lies above 0, `below` below 0, `level "
              f"(±m)` when it lies within ±m points (equivalent within the margin the claim states), `not_above` when "
              f"it does not lie above 0, `not_below` when it does not lie below 0. Stability: the share of "
-             f"{statistics.STABILITY_RESAMPLES} resamples of the seeds (with replacement) in which the verdict stays "
+             f"{bootstrap.STABILITY_RESAMPLES} resamples of the seeds (with replacement) in which the verdict stays "
              f"the same; a claim under {STABLE:g} is marked unstable.",
              "", "| claim | sentence | difference a - b | relation | verdict | stability |",
              "|---|---|---|---|---|---:|"]
@@ -255,7 +255,7 @@ def in_grid(claim: Claim, grid: Collection[str]) -> bool:
 
 
 def write(study_name: str, out: Path, qv: Optional[pd.DataFrame], iv: Optional[pd.DataFrame], boots: dict,
-          path: Path = CLAIMS_FILE, n_boot: int = statistics.N_BOOT,
+          path: Path = CLAIMS_FILE, n_boot: int = bootstrap.N_BOOT,
           grid: Optional[Collection[str]] = None) -> dict[str, Path]:
     """Evaluate the claims of `study_name` and write ``claims.md`` and ``claims.csv`` into `out`; ``{}`` when the
     study has no claims. With `grid` (the study's cell names), a claim on a cell outside the grid is left out and

@@ -19,7 +19,7 @@ import torch
 from monolib import io, paths
 from monolib.graphs import stage as scenegraphs
 from monolib.params import PAPER
-from monolib.report import statistics
+from monolib.report import comparisons
 from monolib.report.tables import csv_text, fmt_ci, threshold_label
 from monolib.retrieval import gcn
 
@@ -61,7 +61,7 @@ def first_node_row(study, method: str, scenario: str, threshold: float, graphs: 
 
 def direction_table(study, iv: pd.DataFrame) -> pd.DataFrame:
     """One row per method of `methods_of` and (scenario, threshold > 0) of its cells: recall@1 on `paper` with its
-    interval (`iv`: `monolib.report.statistics.intervals`) and `first_node_row`."""
+    interval (`iv`: `monolib.report.bootstrap.intervals`) and `first_node_row`."""
     methods = methods_of(study)
     ivp = iv[(iv["metric"] == "recall") & (iv["k"] == 1) & (iv["protocol"] == PAPER) & iv["method"].isin(methods)]
     rows, graphs = [], {}
@@ -74,7 +74,7 @@ def direction_table(study, iv: pd.DataFrame) -> pd.DataFrame:
                 if sc not in graphs:
                     graphs[sc] = scenegraphs.load(study, sc)["test"]
                 r = hit.iloc[0]
-                rows.append({"method": m, "description": statistics.method_description(m, study), "scenario": sc,
+                rows.append({"method": m, "description": comparisons.method_description(m, study), "scenario": sc,
                              "threshold": float(t),
                              "recall": float(r["mean"]), "ci_lo": float(r["ci_lo"]), "ci_hi": float(r["ci_hi"]),
                              **first_node_row(study, m, sc, float(t), graphs[sc])})

@@ -22,7 +22,7 @@ from monolib.report.results import (
     IMAGE_SCENARIO, SUMMARY_KEYS, cells_root, collect, is_image, natural_key, only_protocol, paper_tables, protocols_in,
     read_rankings, split_protocols
 )
-from monolib.report.statistics import N_BOOT, summary
+from monolib.report.bootstrap import N_BOOT, summary
 from monolib.report.tables import n_note, signed, threshold_label
 
 log = logging.getLogger(__name__)
@@ -290,7 +290,7 @@ def fig_matches(study_name: str, rgb_of: RgbOf, path: str | Path, method: str = 
 def fig_recall_by_light(table: pd.DataFrame, path: str | Path, method: str = "gcn", k: int = 1,
                         n_boot: int = N_BOOT) -> Path:
     """Bars: recall@k of queries in bright and in dim test settings per scenario (`method` at each scenario's best
-    threshold) and per image baseline (`monolib.report.statistics.light_table`); error bars: 95 %
+    threshold) and per image baseline (`monolib.report.comparisons.light_table`); error bars: 95 %
     bootstrap intervals."""
     t = table[table["light"].isin(["dim", "bright"])]
     groups = list(dict.fromkeys(zip(t["method"], t["scenario"], t["threshold"])))
@@ -337,7 +337,7 @@ def fig_recall_by_light(table: pd.DataFrame, path: str | Path, method: str = "gc
 
 def fig_recall_vs_depth_scale(table: pd.DataFrame, path: str | Path, k: int = 1, n_boot: int = N_BOOT) -> Path:
     """recall@k against the depth scale factor (log axis), one line per threshold, one panel per (depth,
-    semantic) source pair (`monolib.report.statistics.depth_scale_table`); error bars: 95 % bootstrap intervals."""
+    semantic) source pair (`monolib.report.comparisons.depth_scale_table`); error bars: 95 % bootstrap intervals."""
     import matplotlib
 
     pairs = list(dict.fromkeys(zip(table["depth"], table["semantic"])))
@@ -380,7 +380,7 @@ def _group_name(m: str, sc: str, t: float) -> str:
 
 def fig_protocols(table: pd.DataFrame, path: str | Path, k: int = 1, n_boot: int = N_BOOT) -> Path:
     """Bars: recall@k of each method (graph methods per scenario, at the best ``paper`` threshold) on each
-    protocol, from the same cells (`monolib.report.statistics.protocols_table`); error bars: 95 %
+    protocol, from the same cells (`monolib.report.comparisons.protocols_table`); error bars: 95 %
     bootstrap intervals."""
     import matplotlib
 

@@ -2,7 +2,7 @@
 alone for a study of folds only (``protocol.release_split: false``, such as the development set's):
 
 - ``folds_intervals.csv``: per (method, scenario, threshold, metric, k) the mean over folds and seeds and its 95 %
-  interval resampling folds, test settings, queries and seeds (`monolib.report.statistics.FoldBootstrap`), ``paper``
+  interval resampling folds, test settings, queries and seeds (`monolib.report.bootstrap.FoldBootstrap`), ``paper``
   protocol; a study of folds only writes it as its ``intervals.csv`` too (what `monolib verify` compares);
 - ``folds_table1_recall.{md,csv}``, ``folds_table2_precision.{md,csv}``: Tables 1-2 over the folds, the release
   split in its own column when there is one (its ``intervals.csv``, written by the report before), the paper's
@@ -32,7 +32,7 @@ from monolib import io, paths
 from monolib.data.protocols import family
 from monolib.graphs import fidelity, stage as scenegraphs
 from monolib.params import PAPER, Study, load_study
-from monolib.report import claims, results, statistics, tables
+from monolib.report import bootstrap, claims, results, tables
 from monolib.retrieval.grid import grid
 
 log = logging.getLogger(__name__)
@@ -199,17 +199,17 @@ def agreement(real: pd.Series, synth: pd.Series | None) -> str:
     return "disagree: significant on " + ("real folds only" if bool(real.significant) else "the mini-Hypersim only")
 
 
-def real_vs_synth(study: Study, qv: pd.DataFrame, fboot: statistics.FoldBootstrap,
+def real_vs_synth(study: Study, qv: pd.DataFrame, fboot: bootstrap.FoldBootstrap,
                   figure_dirs: list[Path]) -> pd.DataFrame:
-    """Each comparison of `comparisons` on the real folds (`statistics.fold_paired_difference`, recall@1) beside the
+    """Each comparison of `comparisons` on the real folds (`bootstrap.fold_paired_difference`, recall@1) beside the
     mini-Hypersim's (`synth_differences`), with their agreement."""
     synth = synth_differences(figure_dirs)
     rows = []
     for a, ta, b, tb in comparisons(study):
-        ra, rb = statistics.rows_of(qv, a, SCENARIO, ta), statistics.rows_of(qv, b, SCENARIO, tb)
+        ra, rb = bootstrap.rows_of(qv, a, SCENARIO, ta), bootstrap.rows_of(qv, b, SCENARIO, tb)
         if ra.empty or rb.empty:
             continue
-        for r in statistics.fold_paired_difference(ra, rb, fboot, [METRIC]).itertuples():
+        for r in bootstrap.fold_paired_difference(ra, rb, fboot, [METRIC]).itertuples():
             if a != b and r.diff == 0 and r.ci_lo == 0 and r.ci_hi == 0:
                 continue  # the same numbers query for query: a variant that differs only where it cannot act
             s = synth[(synth["a"] == a) & (synth["ta"] == ta) & (synth["b"] == b) & (synth["tb"] == tb)
@@ -272,7 +272,7 @@ def synth_intervals(figure_dirs: list[Path]) -> pd.DataFrame:
     folder holding a (method, threshold) giving it."""
     parts = [_recall1(pd.read_csv(f / "intervals.csv")) for f in figure_dirs if (f / "intervals.csv").is_file()]
     if not parts:
-        return pd.DataFrame(columns=statistics.INTERVAL_COLUMNS)
+        return pd.DataFrame(columns=bootstrap.INTERVAL_COLUMNS)
     return pd.concat(parts, ignore_index=True).drop_duplicates(["method", "threshold"], keep="first")
 
 
@@ -407,7 +407,7 @@ def reproduces_markdown(study: Study, rvs: pd.DataFrame, best: pd.DataFrame,
     return "\n".join(lines) + "\n"
 
 
-def write(study: Study | None, out: Path, n_boot: int = statistics.N_BOOT) -> dict[str, Path]:
+def write(study: Study | None, out: Path, n_boot: int = bootstrap.N_BOOT) -> dict[str, Path]:
     """The fold outputs of a study with folds by volume into `out` (nothing for any other study). With the release
     split beside the folds, the release split's ``intervals.csv`` must be there already
     (`monolib.report.write.write_report` writes it first). A study of folds only (``protocol.release_split:
@@ -426,16 +426,16 @@ def write(study: Study | None, out: Path, n_boot: int = statistics.N_BOOT) -> di
     if qv.empty:
         log.warning("%s: no fold has a finished cell: no tables over folds", study.name)
         return written
-    fboot = statistics.FoldBootstrap.for_queries(qv, n_boot)
-    iv = statistics.fold_intervals(qv, fboot)
+    fboot = bootstrap.FoldBootstrap.for_queries(qv, n_boot)
+    iv = bootstrap.fold_intervals(qv, fboot)
     io.write_text(out / "folds_intervals.csv", tables.csv_text(iv))
     if only_folds:
         io.write_text(out / "intervals.csv", tables.csv_text(iv))
         written["intervals"] = out / "intervals.csv"
-        release = pd.DataFrame(columns=statistics.INTERVAL_COLUMNS)
+        release = pd.DataFrame(columns=bootstrap.INTERVAL_COLUMNS)
     else:
         release = pd.read_csv(out / "intervals.csv") if (out / "intervals.csv").is_file() else pd.DataFrame(
-            columns=statistics.INTERVAL_COLUMNS)
+            columns=bootstrap.INTERVAL_COLUMNS)
     release = results.only_protocol(release.assign(threshold=release["threshold"].map(results.threshold_value)),
                                     PAPER)
     for name, metric in (("folds_table1_recall", "recall"), ("folds_table2_precision", "precision")):

@@ -10,7 +10,7 @@ A query's candidates are its own setting's positives plus every frame of the pro
 ``recall@k``: share of queries with at least one frame of their own setting in the top k.
 ``precision@k``: mean over queries of (own-setting frames in the top k) / k. Values in percent.
 `recompute_metrics` computes them from a cell's ``rankings.csv``; `query_table` gives the per-query values behind
-them (what the bootstrap of `monolib.report.statistics` resamples) and checks that their means are the metrics the cell
+them (what the bootstrap of `monolib.report.bootstrap` resamples) and checks that their means are the metrics the cell
 recorded in ``cell.json`` (`CellMismatchError` when not).
 
 Protocols

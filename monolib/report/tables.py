@@ -4,7 +4,7 @@ an interval are printed.
 
 Table 1 and 2 follow the paper's layout: one row per method / scenario x threshold, image baselines below
 ("RGB only"); columns k (ours: mean ± std over seeds, the 95 % bootstrap interval, a dagger on thresholds
-significantly below the best of `monolib.report.statistics.threshold_tests`), then the paper's published number beside
+significantly below the best of `monolib.report.comparisons.threshold_tests`), then the paper's published number beside
 the GCN rows of the ``paper`` protocol (`monolib.report.results.paper_tables`).
 """
 from __future__ import annotations
@@ -23,7 +23,7 @@ from monolib.params import PAPER, SIBLINGS
 from monolib.report.results import (
     SUMMARY_KEYS, is_image, one_protocol_only, only_protocol, paper_tables, protocols_in, sort_rows
 )
-from monolib.report.statistics import N_BOOT, summary
+from monolib.report.bootstrap import N_BOOT, summary
 
 log = logging.getLogger(__name__)
 
@@ -333,11 +333,11 @@ def write_tables(results: pd.DataFrame, out_dir: str | Path,
     """Write ``table1_recall.{md,csv,tex}`` and ``table2_precision.{md,csv,tex}`` of one protocol into `out_dir`
     (the ``paper`` protocol; another protocol's files end in ``_<protocol>``: ``table1_recall_siblings.md``, keys
     ``table1_siblings_md``...). `results` (`monolib.report.results.collect`), `intervals` and `tests`
-    (`monolib.report.statistics`) may hold every protocol: the rows of `protocol` are used.
+    (`monolib.report.bootstrap`, `monolib.report.comparisons`) may hold every protocol: the rows of `protocol` are used.
 
     Rows: method / scenario x threshold, image baselines below ("RGB only"); columns: k (ours, mean ± std over
-    seeds, or the mean alone when n = 1; with `intervals` (see `monolib.report.statistics.intervals`) followed by the
-    95 % bootstrap interval ``[lo, hi]``; with `tests` (see `monolib.report.statistics.threshold_tests`) a dagger on
+    seeds, or the mean alone when n = 1; with `intervals` (see `monolib.report.bootstrap.intervals`) followed by the
+    95 % bootstrap interval ``[lo, hi]``; with `tests` (see `monolib.report.comparisons.threshold_tests`) a dagger on
     thresholds significantly below the best) then the paper's published number for the GCN rows. Best mean per
     (method, scenario, k) in bold (compared at the printed precision). The csv has ``method, scenario, threshold,
     k, mean, std, n, [ci_lo, ci_hi,] paper[, worse_than_best]``. `note`: the caption's sentence on how the
@@ -366,7 +366,7 @@ def write_tables(results: pd.DataFrame, out_dir: str | Path,
 
 def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
                       base: str = "gcn", n_boot: int = N_BOOT, title: str = "Encoder ablation.") -> str:
-    """``encoder_ablation.md`` of `monolib.report.statistics.encoder_ablation`: rows = method x (scenario, threshold)
+    """``encoder_ablation.md`` of `monolib.report.comparisons.encoder_ablation`: rows = method x (scenario, threshold)
     (the base first), columns = each metric's ``mean [lo, hi]`` and its paired difference to the base
     ``Δ [lo, hi]`` (* when significant)."""
     labels = dict(scenario_labels or {})
@@ -404,7 +404,7 @@ def ablation_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str
 
 def edge_penalty_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
                           n_boot: int = N_BOOT, title: str = "What the edges cost.") -> str:
-    """``edge_penalty.md`` of `monolib.report.statistics.edge_penalty`: a row per method and scenario, recall@k
+    """``edge_penalty.md`` of `monolib.report.comparisons.edge_penalty`: a row per method and scenario, recall@k
     without edges, then at each threshold the paired difference to it ``Δ [lo, hi]`` (* when significant)."""
     labels = dict(scenario_labels or {})
     thresholds = sorted(table["threshold"].unique())
@@ -431,7 +431,7 @@ def edge_penalty_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping
 
 def twin_rows(table: pd.DataFrame, axis: str, scenario_labels: Optional[Mapping[str, str]] = None,
               paper: Optional[Mapping[tuple, float]] = None) -> list[str]:
-    """The per-scenario tables of `monolib.report.statistics.twin_table` along `axis`: per method and threshold,
+    """The per-scenario tables of `monolib.report.comparisons.twin_table` along `axis`: per method and threshold,
     recall@k of the scenario and of its twin, with the paired difference; with `paper` ({(scenario, threshold):
     the paper's number}) a last column with it on the `gcn` rows (blank where the paper has none)."""
     labels = dict(scenario_labels or {})
@@ -458,7 +458,7 @@ def twin_rows(table: pd.DataFrame, axis: str, scenario_labels: Optional[Mapping[
 
 def projection_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
                         n_boot: int = N_BOOT) -> str:
-    """``projection.md`` of `monolib.report.statistics.projection_table`: per method, scenario and threshold, recall@k
+    """``projection.md`` of `monolib.report.comparisons.projection_table`: per method, scenario and threshold, recall@k
     in the scenario's camera and in its twin's, with the paired difference."""
     k = int(table["k"].iloc[0]) if len(table) else 1
     lines = [f"**The two cameras, threshold by threshold** (recall@{k}, `paper` protocol). The same encoder, "
@@ -473,7 +473,7 @@ def projection_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[s
 
 def colour_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
                     n_boot: int = N_BOOT) -> str:
-    """``colour.md`` of `monolib.report.statistics.colour_table`: per method, scenario and threshold, recall@k with
+    """``colour.md`` of `monolib.report.comparisons.colour_table`: per method, scenario and threshold, recall@k with
     the node colours in the scenario's space and in its twin's, with the paired difference."""
     k = int(table["k"].iloc[0]) if len(table) else 1
     lines = [f"**The two colour spaces of the nodes, threshold by threshold** (recall@{k}, `paper` protocol). The same "
@@ -492,7 +492,7 @@ def colour_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, 
 
 def protocols_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None,
                        n_boot: int = N_BOOT) -> str:
-    """``protocols.md`` of `monolib.report.statistics.protocols_table`: one row per method (and scenario), recall@k on
+    """``protocols.md`` of `monolib.report.comparisons.protocols_table`: one row per method (and scenario), recall@k on
     each protocol with its interval."""
     labels = dict(scenario_labels or {})
     protos = protocols_in(table)
@@ -518,7 +518,7 @@ def protocols_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[st
 
 
 def confusions_markdown(table: pd.DataFrame, scenario_labels: Optional[Mapping[str, str]] = None) -> str:
-    """``siblings_confusions.md`` of `monolib.report.statistics.siblings_confusions`: one row per method (and
+    """``siblings_confusions.md`` of `monolib.report.comparisons.siblings_confusions`: one row per method (and
     scenario) of the protocols table, where its ``siblings`` queries' top-1 matches go (percent of queries over
     seeds) and the sibling share of its errors."""
     labels = dict(scenario_labels or {})

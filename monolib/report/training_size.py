@@ -22,7 +22,7 @@ import pandas as pd
 
 from monolib import io, paths
 from monolib.params import load_study
-from monolib.report import folds, tables
+from monolib.report import bootstrap, folds, tables
 from monolib.report.figures import new_figure
 
 log = logging.getLogger(__name__)
@@ -40,7 +40,7 @@ def study_rows(study_name: str) -> pd.DataFrame:
     path = paths.figures_dir(study_name) / "intervals.csv"
     if not path.is_file():
         log.warning("training size: %s not found (run the study first): left out", path)
-        return pd.DataFrame(columns=folds.statistics.INTERVAL_COLUMNS)
+        return pd.DataFrame(columns=bootstrap.INTERVAL_COLUMNS)
     return folds._recall1(pd.read_csv(path))
 
 

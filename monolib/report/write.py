@@ -5,8 +5,9 @@ The work is split by concern:
 
 - `monolib.report.results`: reading the cells (``cell.json``, ``rankings.csv``, ``protocol.csv``), recomputing the
   metrics from the rankings, checking the protocol, per-query values, the paper's published numbers;
-- `monolib.report.statistics`: mean and std over seeds, the hierarchical bootstrap (intervals), paired tests (thresholds
-  against the best), and the controlled comparisons (encoder ablation, dim vs bright, depth scale, protocols);
+- `monolib.report.bootstrap`: mean and std over seeds, the hierarchical bootstrap (intervals), paired differences;
+- `monolib.report.comparisons`: the tables built on the paired bootstrap: thresholds against the best, and the
+  controlled comparisons (encoder ablation, dim vs bright, depth scale, protocols);
 - `monolib.report.tables`: Table 1 and 2 in md, csv and TeX, the ablation and protocols tables, number formats;
 - `monolib.report.figures`: recall vs threshold, Figure 5 (top-1 matches), recall by light, vs depth scale, by protocol.
 
@@ -24,7 +25,7 @@ import pandas as pd
 
 from monolib import io, params, paths
 from monolib.params import PAPER, SIBLINGS
-from monolib.report import claims, direction, figures, folds, results, statistics, tables, training
+from monolib.report import bootstrap, claims, comparisons, direction, figures, folds, results, tables, training
 from monolib.retrieval import grid
 
 log = logging.getLogger(__name__)
@@ -52,25 +53,25 @@ def _ablations_of(study) -> dict[str, list[str]]:
 
 def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
                  scenario_labels: Optional[Mapping[str, str]] = None, method: str = "gcn", study=None,
-                 n_boot: int = statistics.N_BOOT) -> dict[str, Path]:
+                 n_boot: int = bootstrap.N_BOOT) -> dict[str, Path]:
     """Collect a study's cells and write into `monolib.paths.figures_dir(study)`:
 
     - ``results.csv``: one row per (method, scenario, threshold, seed, protocol, metric, k) number;
     - ``intervals.csv``: per (method, scenario, threshold, protocol, metric, k) the mean and its 95 % bootstrap
-      interval over test settings, queries and seeds (`monolib.report.statistics.intervals`, ``n_boot`` resamples, numpy
+      interval over test settings, queries and seeds (`monolib.report.bootstrap.intervals`, ``n_boot`` resamples, numpy
       seed 0, one resample per protocol);
-    - ``threshold_tests.csv``: each threshold against its scenario's best (`monolib.report.statistics.threshold_tests`),
-      per protocol;
+    - ``threshold_tests.csv``: each threshold against its scenario's best
+      (`monolib.report.comparisons.threshold_tests`), per protocol;
     - Table 1 and 2 (md, csv, tex) of the ``paper`` protocol with the intervals and a dagger on thresholds
       significantly below the best, and the same tables of the ``siblings`` protocol (``table1_recall_siblings.*``,
       ``table2_precision_siblings.*``) when the cells have it; scenarios with ``in_tables: false`` are left out of
       the tables and of ``recall_vs_threshold.png``;
     - ``fig_protocols.png`` + ``protocols.{csv,md}``: recall@1 of each method on both protocols
-      (`monolib.report.statistics.protocols_table`;
+      (`monolib.report.comparisons.protocols_table`;
       when the cells have more than one protocol);
     - ``siblings_confusions.{md,csv}``: per row of the protocols table, where the ``siblings`` queries' top-1
       matches go (own setting, the sibling setting of its family, another family; over seeds;
-      `monolib.report.statistics.siblings_confusions`), when the protocols table has the ``siblings`` protocol;
+      `monolib.report.comparisons.siblings_confusions`), when the protocols table has the ``siblings`` protocol;
     - ``recall_vs_threshold.png`` (error bars: the intervals) and ``fig5_matches.png`` (skipped when `rgb_of` is
       None or the study has no `method` cell), ``paper`` protocol;
     - ``encoder_ablation.{md,csv}`` when the study has encoder variants (``paper`` protocol);
@@ -86,8 +87,8 @@ def write_report(study_name, rgb_of: Optional[figures.RgbOf] = None,
       (``paper`` protocol);
     - ``claims.{md,csv}`` when ``params/claims.yaml`` has claims for the study (`monolib.report.claims`);
     - ``projection.{md,csv}`` when a scenario of the tables has a twin in the other camera of the graph stage
-      (`monolib.report.statistics.projection_table`, ``paper`` protocol); ``colour.{md,csv}`` likewise when one
-      has a twin with node colours in the other space (`monolib.report.statistics.colour_table`).
+      (`monolib.report.comparisons.projection_table`, ``paper`` protocol); ``colour.{md,csv}`` likewise when one
+      has a twin with node colours in the other space (`monolib.report.comparisons.colour_table`).
 
     `study_name` is a name or a loaded `monolib.params.Study`; `study` (default: ``params/<name>.yaml`` when it
     loads) gives variant descriptions, scenario information and the dataset folder. Labels default to the
@@ -170,9 +171,9 @@ def _write_intervals(r: _Report) -> None:
     ivs, tts = [], []
     for p in results.protocols_in(r.qv_all):
         qp = results.only_protocol(r.qv_all, p)
-        r.boots[p] = statistics.Bootstrap.for_queries(qp, r.n_boot)
-        ivs.append(statistics.intervals(qp, r.boots[p]))
-        tts.append(statistics.threshold_tests(qp, ivs[-1], r.boots[p]))
+        r.boots[p] = bootstrap.Bootstrap.for_queries(qp, r.n_boot)
+        ivs.append(bootstrap.intervals(qp, r.boots[p]))
+        tts.append(comparisons.threshold_tests(qp, ivs[-1], r.boots[p]))
     r.iv_all = results.sort_rows(pd.concat(ivs, ignore_index=True), results.SUMMARY_KEYS)
     r.tests = pd.concat(tts, ignore_index=True)
     r.write("intervals", "intervals.csv", tables.csv_text(r.iv_all))
@@ -205,7 +206,7 @@ def _write_protocols(r: _Report) -> None:
     if r.qv_all is None or len(results.protocols_in(r.qv_all)) <= 1:
         print(f"{r.study_name}: one protocol only (protocol.siblings: 0): fig_protocols.png not drawn")
         return
-    table = statistics.protocols_table(r.qv_all, r.iv_all, r.hidden)
+    table = comparisons.protocols_table(r.qv_all, r.iv_all, r.hidden)
     r.write("protocols_csv", "protocols.csv", tables.csv_text(table))
     r.write("protocols_md", "protocols.md", tables.protocols_markdown(table, r.labels, r.n_boot))
     r.written["fig_protocols"] = figures.fig_protocols(table, r.out / "fig_protocols.png", n_boot=r.n_boot)
@@ -213,7 +214,7 @@ def _write_protocols(r: _Report) -> None:
     if len(sib):
         groups = set(zip(sib["method"], sib["scenario"], sib["threshold"]))
         top1 = results.rankings_table(r.study_name, r.cells, groups, protocol=SIBLINGS, max_rank=1)
-        conf = statistics.siblings_confusions(top1, table)
+        conf = comparisons.siblings_confusions(top1, table)
         if len(conf):
             r.write("siblings_confusions_csv", "siblings_confusions.csv", tables.csv_text(conf))
             r.write("siblings_confusions_md", "siblings_confusions.md", tables.confusions_markdown(conf, r.labels))
@@ -222,14 +223,14 @@ def _write_protocols(r: _Report) -> None:
 def _write_ablations(r: _Report) -> None:
     """``encoder_ablation.{md,csv}`` (paper protocol) and ``ablation_<method>.{md,csv}`` for each method whose
     parts variants switch one at a time (every protocol)."""
-    ablation = statistics.encoder_ablation(r.qv, r.iv, r.boot, r.study, base=r.method)
+    ablation = comparisons.encoder_ablation(r.qv, r.iv, r.boot, r.study, base=r.method)
     if len(ablation):
         r.write("encoder_ablation_md", "encoder_ablation.md",
                 tables.ablation_markdown(ablation, r.labels, r.method, r.n_boot))
         r.write("encoder_ablation_csv", "encoder_ablation.csv", tables.csv_text(ablation))
     qv_all, iv_all = r.qv_all, r.iv_all
     for base, parts in _ablations_of(r.study).items():
-        tabs = {p: statistics.encoder_ablation(qv_all[qv_all["method"].isin([base, *parts])],
+        tabs = {p: comparisons.encoder_ablation(qv_all[qv_all["method"].isin([base, *parts])],
                                                iv_all[iv_all["method"].isin([base, *parts])], r.boots[p], r.study,
                                                base=base, protocol=p) for p in results.protocols_in(qv_all)}
         tabs = {p: t for p, t in tabs.items() if len(t)}
@@ -245,7 +246,7 @@ def _write_ablations(r: _Report) -> None:
 def _write_edge_penalty(r: _Report) -> None:
     """``edge_penalty.{md,csv}``: each graph encoder's recall@1 at every threshold against its own without edges
     (paper protocol; scenarios of the tables and their twins alike)."""
-    table = statistics.edge_penalty(r.qv, r.iv, r.boot)
+    table = comparisons.edge_penalty(r.qv, r.iv, r.boot)
     if len(table):
         r.write("edge_penalty_md", "edge_penalty.md", tables.edge_penalty_markdown(table, r.labels, r.n_boot))
         r.write("edge_penalty_csv", "edge_penalty.csv", tables.csv_text(table))
@@ -254,8 +255,8 @@ def _write_edge_penalty(r: _Report) -> None:
 def _write_twins(r: _Report) -> None:
     """``projection.{md,csv}`` and ``colour.{md,csv}``: scenarios against their twins in the other camera or colour
     space (paper protocol)."""
-    for axis, table_of, markdown_of in (("projection", statistics.projection_table, tables.projection_markdown),
-                                        ("colour", statistics.colour_table, tables.colour_markdown)):
+    for axis, table_of, markdown_of in (("projection", comparisons.projection_table, tables.projection_markdown),
+                                        ("colour", comparisons.colour_table, tables.colour_markdown)):
         twins = table_of(r.qv, r.iv, r.boot, r.info)
         if len(twins):
             r.write(f"{axis}_md", f"{axis}.md", markdown_of(twins, r.labels, r.n_boot))
@@ -271,7 +272,7 @@ def _write_light(r: _Report) -> None:
         print(f"{r.study_name}: no dim test setting among the queries: recall_by_light.png not drawn")
     else:
         shown = [sc for sc in r.qv["scenario"].unique() if sc not in r.hidden]
-        light = statistics.light_table(r.qv, r.iv, r.boot, dim_of, shown, r.method)
+        light = comparisons.light_table(r.qv, r.iv, r.boot, dim_of, shown, r.method)
         r.write("light", "light.csv", tables.csv_text(light))
         r.written["recall_by_light"] = figures.fig_recall_by_light(light, r.out / "recall_by_light.png", r.method,
                                                                    n_boot=r.n_boot)
@@ -279,7 +280,7 @@ def _write_light(r: _Report) -> None:
 
 def _write_depth_scale(r: _Report) -> None:
     """``depth_scale.csv`` and ``recall_vs_depth_scale.png`` when the study has scenarios with a depth scale."""
-    depth = statistics.depth_scale_table(r.qv, r.iv, r.boot, r.info, r.method)
+    depth = comparisons.depth_scale_table(r.qv, r.iv, r.boot, r.info, r.method)
     if depth.empty:
         print(f"{r.study_name}: no scenario with depth_scale != 1 (and {r.method} cells): recall_vs_depth_scale.png "
               f"not drawn")

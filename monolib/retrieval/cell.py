@@ -6,7 +6,7 @@
 a leading ``protocol`` column (``paper``, ``siblings``: `monolib.retrieval.evaluate.evaluate_protocols`, one trained
 encoder evaluated on both), `embeddings.npy` (every test frame) and, for trained methods,
 `history.csv` and `model.pt` (the encoder's weights, used by `monolib index`). A cell whose graphs equal those of
-a smaller threshold (`monolib.study.runner.same_graphs`) is a copy of that cell's files, and its `cell.json` says so
+a smaller threshold (`monolib.study.copies.same_graphs`) is a copy of that cell's files, and its `cell.json` says so
 (`same_graphs_as`).
 """
 from __future__ import annotations

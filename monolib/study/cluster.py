@@ -1,9 +1,9 @@
 """Where the cells of the grid run: worker processes of this machine (the default), or the workers of a Dask
 cluster (`monolib study STUDY --scheduler ADDRESS`, `distributed`).
 
-Either way a cell is one call of `monolib.study.runner.run_cell_notebook` (a papermill run of `ablation_cell.ipynb`),
-submitted as one task, and `Workers.submit` returns a `concurrent.futures.Future`, so the runner has one loop for
-both. On a Dask cluster:
+Either way a cell is one call of `monolib.study.notebooks.run_cell_notebook` (a papermill run of
+`ablation_cell.ipynb`), submitted as one task, and `Workers.submit` returns a `concurrent.futures.Future`, so the
+runner has one loop for both. On a Dask cluster:
 
 - the workers need the project installed with the same code as the machine that runs `monolib study` (the client),
   and the project's runs folder at the same path (a shared file system): `connect` checks both before any cell is

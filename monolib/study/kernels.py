@@ -14,9 +14,9 @@ torch_geometric, monolib: about 10 s) per cell.
   started, and every ``functools`` cache of monolib's modules cleared. Everything else that decides a result (seeds,
   torch threads, deterministic mode) is set by the cell itself (`monolib.retrieval.cell.run_cell`), so the result of a
   cell does not depend on the cells that ran before it in the same kernel (`tests/test_kernels.py`).
-* `discard()`: shut the kernel down; the runner does so after a notebook error, a timeout or a dead kernel, so
-  a cell never inherits a broken kernel (and the cell is re-run once in a fresh one when the kernel, not the
-  notebook, failed).
+* `discard()`: shut the kernel down; `monolib.study.notebooks.execute` does so after a notebook error, a timeout
+  or a dead kernel, so a cell never inherits a broken kernel (and the cell is re-run once in a fresh one when the
+  kernel, not the notebook, failed).
 
 ``MONOLIB_KERNELS=cold`` (or ``monolib study ... --cold-kernels``) keeps the kernel-per-cell behaviour.
 """

@@ -1,11 +1,11 @@
 """The study runner: dataset -> perception -> graphs -> the papermill grid of cells -> the report notebook.
 
 Every stage is cached by the parameters it depends on and skipped when its files exist, so a killed run is
-resumed by running the same command again, and changing a GCN setting redoes only the cells.
+resumed by running the same command again, and changing a GCN setting redoes only the cells. Which cells copy
+another's results: `monolib.study.copies`; how a notebook runs: `monolib.study.notebooks`.
 """
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import time
@@ -22,99 +22,15 @@ from monolib.perception import features, stage as perception
 from monolib.perception.images import FrameRgb
 from monolib.progress import tqdm
 from monolib.report import graph_sizes, readme, viz
-from monolib.retrieval import gcn
 from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete,
                                     refresh_metrics, run_cell, scenario_fields)
 from monolib.retrieval.grid import CellSpec, grid  # (the grid: monolib.retrieval.grid; re-exported)
-from monolib.study import cluster, kernels
+from monolib.study import cluster
+from monolib.study.copies import same_graphs
+from monolib.study.notebooks import (CELL_NOTEBOOK, REPORT_NOTEBOOK, NotebookFailed, check_notebook_parameters, execute,
+                                     run_cell_notebook)
 
 log = logging.getLogger(__name__)
-CELL_NOTEBOOK = paths.NOTEBOOKS / "ablation_cell.ipynb"
-REPORT_NOTEBOOK = paths.NOTEBOOKS / "report.ipynb"
-
-
-def same_graphs(study: Study, cells: list[CellSpec],
-                scenario_keys: dict[str, str] | None = None) -> dict[str, CellSpec]:
-    """{cell name: source cell} for the graph cells that are the same computation as another cell of the same
-    method, seed and fold (same inputs, encoder and seed), so that the runner copies the source's results:
-
-    - within a scenario, a threshold whose scene graphs equal those of a smaller one: no pair of nodes, in any
-      frame of any split, has a length between the two (edges only grow with the threshold, so equal edge totals
-      mean equal graphs). With predicted depth every pair is often closer than 5 m, and 5, 10 and inf give one
-      graph set;
-    - across scenarios, a cell whose encoder reads exactly what a cell of an earlier scenario reads at the same
-      threshold (`monolib.retrieval.gcn.input_fingerprint`): two depth networks with the same semantics give the
-      paper's GCN the same graphs without edges (0 m) and with every pair joined (inf), as it reads no length.
-
-    `scenario_keys`: the graph stage's keys, when the caller holds them."""
-    import torch
-
-    groups: dict[tuple, list[CellSpec]] = {}
-    for c in cells:
-        if methods.kind(c.method, study) == "graph":
-            groups.setdefault((c.method, c.scenario, c.seed, c.fold), []).append(c)
-    loaded: dict[tuple, dict] = {}
-
-    def graphs_of(scenario: str, fold) -> dict:
-        if (scenario, fold) not in loaded:
-            loaded[scenario, fold] = scenegraphs.load(study.at_fold(fold), scenario,
-                                                      key=(scenario_keys or {}).get(scenario) if fold is None else None)
-        return loaded[scenario, fold]
-
-    lengths: dict[tuple, torch.Tensor] = {}
-    out = {}
-    for (_, scenario, _, fold), group in groups.items():
-        if (scenario, fold) not in lengths:
-            lengths[scenario, fold] = torch.cat([g.pair_len for split in graphs_of(scenario, fold).values()
-                                                 for g in split] + [torch.zeros(0)])
-        by_threshold = {float(c.threshold): c for c in group}
-        for t, source in scenegraphs.identical_thresholds(lengths[scenario, fold], by_threshold).items():
-            out[by_threshold[t].name] = by_threshold[source]
-    out.update(_same_inputs(study, [c for c in cells if c.name not in out and c.scenario in study.scenarios
-                                    and methods.kind(c.method, study) == "graph"], graphs_of))
-    return out
-
-
-def _same_inputs(study: Study, cells: list[CellSpec], graphs_of) -> dict[str, CellSpec]:
-    """The cross-scenario part of `same_graphs`: {cell name: the cell of the earliest scenario (study order) whose
-    encoder reads the same inputs at the same threshold}. Only scenarios whose node features are identical are
-    compared edge by edge."""
-    order = {name: i for i, name in enumerate(study.scenarios)}
-    nodes: dict[tuple, str] = {}
-
-    def node_digest(scenario: str, fold) -> str:
-        if (scenario, fold) not in nodes:
-            h = hashlib.sha256()
-            for split, graphs in sorted(graphs_of(scenario, fold).items()):
-                for g in graphs:
-                    h.update(f"{split}|{g.setting}|{g.frame}|".encode())
-                    h.update(g.x.numpy().tobytes())
-            nodes[scenario, fold] = h.hexdigest()
-        return nodes[scenario, fold]
-
-    candidates: dict[tuple, list[CellSpec]] = {}
-    for c in cells:
-        candidates.setdefault((c.method, float(c.threshold), c.seed, c.fold), []).append(c)
-    digests: dict[tuple, str] = {}
-    out = {}
-    for (method, threshold, _, fold), group in candidates.items():
-        if len({c.scenario for c in group}) < 2:
-            continue
-        spec = study.gcn_spec(method)
-        first: dict[str, CellSpec] = {}
-        for c in sorted(group, key=lambda c: order[c.scenario]):
-            if sum(node_digest(o.scenario, fold) == node_digest(c.scenario, fold) for o in group) < 2:
-                continue
-            k = (c.scenario, fold, threshold, method)
-            if k not in digests:
-                graphs = graphs_of(c.scenario, fold)
-                digests[k] = gcn.input_fingerprint([g for split in sorted(graphs) for g in graphs[split]], threshold,
-                                                   spec, study.projection(c.scenario))
-            if digests[k] in first:
-                out[c.name] = first[digests[k]]
-            else:
-                first[digests[k]] = c
-    return out
 
 
 # The image methods that train an encoder (tens of seconds a cell on one thread, against a few seconds for a graph
@@ -129,126 +45,9 @@ def longest_first(cells: list[CellSpec]) -> list[CellSpec]:
     return sorted(cells, key=lambda c: LONG_CELLS.index(c.method) if c.method in LONG_CELLS else len(LONG_CELLS))
 
 
-def check_notebook_parameters(notebook: Path, names: set[str]) -> None:
-    """Fail before any work when the grid sets a parameter the notebook does not declare."""
-    import papermill
-
-    declared = set(papermill.inspect_notebook(str(notebook)))
-    missing = sorted(names - declared)
-    if missing:
-        raise StudyError(f"{notebook}: no parameter named {', '.join(missing)} "
-                         f"(declared: {', '.join(sorted(declared))})")
-
-
-class NotebookFailed(RuntimeError):
-    """A notebook run stopped: which notebook cell raised what, and where the executed notebook (with the full
-    traceback) is. One plain message, so that it pickles back from a worker process and reads in a log."""
-
-
-def kernel_config():
-    """The kernel settings of every notebook the runner executes (papermill's `config`, read by nbclient and
-    jupyter_client), so that a log of the run holds the run and not the kernels' plumbing:
-
-    - the kernel's channels are Unix sockets of its own in Jupyter's runtime folder (`transport = "ipc"`, a new
-      `ip` prefix per call), not TCP ports: ipykernel 7 no longer warns, for every notebook, "Kernel is running
-      over TCP without encryption", and parallel kernels cannot collide on a port ("ZMQError: Address already in
-      use"). Where Unix sockets cannot be used (Windows, or a runtime folder whose path is too long for a socket
-      name): TCP with CurveZMQ keys provisioned by the manager (`transport_encryption = "auto"`), which also ends
-      the warning;
-    - the kernel process logs only critical errors (`IPKernelApp.log_level`): jupyter_client interrupts a kernel
-      before shutting it down, and now and then ipykernel reports that interrupt as "ERROR | KeyboardInterrupt
-      caught in kernel". A notebook's own errors are not kernel log lines: they reach the executed notebook and
-      `NotebookFailed`."""
-    import uuid
-
-    import zmq
-    from jupyter_core.paths import jupyter_runtime_dir
-    from traitlets.config import Config
-
-    prefix = os.path.join(jupyter_runtime_dir(), f"kernel-{uuid.uuid4()}-ipc")  # sockets: prefix-1 ... prefix-5
-    config = Config({"NotebookClient": {"extra_arguments": ["--IPKernelApp.log_level=CRITICAL"]}})
-    if os.name == "posix" and len(prefix.encode()) < 96:  # a socket's path: at most 107 bytes on Linux, 103 on macOS
-        os.makedirs(os.path.dirname(prefix), mode=0o700, exist_ok=True)
-        config.KernelManager.transport = "ipc"
-        config.KernelManager.ip = prefix
-    elif zmq.has("curve"):
-        config.KernelManager.transport_encryption = "auto"
-    return config
-
-
-def _ansi_free(text: str) -> str:
-    import re
-
-    return re.sub(r"\x1b\[[0-9;]*[A-Za-z]", "", text)
-
-
-def failure_message(notebook: Path, output: Path, exc) -> str:
-    """A `PapermillExecutionError` in a few readable lines: the notebook cell (its number and first line of code),
-    the error, the last lines of its traceback, and the executed notebook that holds the rest."""
-    lines = [ln for ln in _ansi_free(exc.source).splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
-    tb = [ln for ln in _ansi_free("\n".join(exc.traceback or [])).splitlines()
-          if ln.strip() and ln.strip("- ") and "Traceback (most recent call last)" not in ln]
-    where = f"In [{exc.exec_count}]" + (f" ({lines[0].strip()[:80]})" if lines else "")  # as the notebook shows it
-    tail = "".join(f"\n    {ln}" for ln in tb[-7:-1])  # the lines nearest the error (the error: first line)
-    return (f"{notebook.name}: {where} raised {exc.ename}: {exc.evalue}{tail}\n"
-            f"  executed notebook: {output}")
-
-
-def execute(notebook: Path, output: Path, parameters: dict, timeout: int, retries: int = 1,
-            warm: bool = False, env: dict[str, str] | None = None) -> Path:
-    """Run a notebook with papermill (explicit kernel, cwd and timeout, `kernel_config`): in its own kernel, or with
-    `warm` in this worker's warm kernel (`monolib.study.kernels`, which inherits `env`). A failing notebook cell raises
-    `NotebookFailed` naming the cell and the executed notebook (papermill writes it, traceback included). Any other
-    failure (a kernel that did not start, died or timed out) is retried `retries` times, in a fresh kernel; a warm
-    kernel is discarded after any failure, so no notebook inherits a broken one."""
-    import papermill
-
-    output.parent.mkdir(parents=True, exist_ok=True)
-    for attempt in range(retries + 1):
-        try:
-            if warm:
-                kernels.execute(str(notebook), str(output), parameters, timeout, str(notebook.parent), env or {},
-                                kernel_config())
-            else:
-                papermill.execute_notebook(str(notebook), str(output), parameters=parameters, kernel_name="python3",
-                                           cwd=str(notebook.parent), execution_timeout=timeout, progress_bar=False,
-                                           log_output=False, config=kernel_config())
-            return output
-        except papermill.PapermillExecutionError as exc:
-            if warm:
-                kernels.discard()
-            raise NotebookFailed(failure_message(notebook, output, exc)) from None
-        except Exception as exc:  # the kernel failed: start-up (ZMQError, timeouts), death, a cell's timeout
-            if warm:
-                kernels.discard()
-            if attempt == retries:
-                raise
-            log.warning("%s: the kernel failed (%s: %s); running it again in a fresh kernel", notebook.name,
-                        type(exc).__name__, exc)
-            time.sleep(2)
-    return output
-
-
 def _cell_notebook_path(study_name: str, cell_name: str) -> Path:
     """Where the runner writes the executed notebook of a cell (`runs/<study>/notebooks/cells/`)."""
     return paths.study_dir(study_name) / "notebooks" / "cells" / f"{cell_name.replace('/', '__')}.ipynb"
-
-
-def run_cell_notebook(study_file: str, cell: CellSpec, output: str, timeout: int, env: dict[str, str]) -> float:
-    """One cell of the grid as a worker runs it (a local process or a Dask worker): `ablation_cell.ipynb` through
-    papermill into `output`, in a kernel that inherits `env` (`monolib.study.cluster.task_environment`: the client's
-    runs folder and device): the worker's warm kernel (`monolib.study.kernels`) unless ``MONOLIB_KERNELS=cold``.
-    Returns its wall seconds."""
-    t0 = time.perf_counter()
-    if cluster.FINGERPRINT_ENV in env:  # a Dask worker: still the client's code, libraries and study, now?
-        cluster.check_fingerprint(study_file, env[cluster.FINGERPRINT_ENV])
-        env = {k: v for k, v in env.items() if k != cluster.FINGERPRINT_ENV}
-    os.environ.update(env)
-    execute(CELL_NOTEBOOK, Path(output), {"study": study_file, "method": cell.method, "scenario": cell.scenario,
-                                          "threshold": float(cell.threshold), "seed": int(cell.seed), "out_dir": "",
-                                          "fold": -1 if cell.fold is None else int(cell.fold)},
-            timeout, warm=kernels.warm_enabled(), env=env)
-    return time.perf_counter() - t0
 
 
 def _cell_keys(study: Study, cells: list[CellSpec]) -> tuple[dict[str, str], dict]:
