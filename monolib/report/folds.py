@@ -58,7 +58,7 @@ def fold_query_table(study: Study) -> pd.DataFrame:
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
 
-def _ci(mean: float, lo: float, hi: float) -> str:
+def mean_ci(mean: float, lo: float, hi: float) -> str:
     return "" if mean != mean else f"{mean:.1f} {tables.fmt_ci(lo, hi)}"
 
 
@@ -98,9 +98,9 @@ def tables_markdown(t: pd.DataFrame, metric: str, study: Study) -> str:
         for k in ks:
             r = g[g["k"] == k]
             r = r.iloc[0] if len(r) else None
-            cells += ["" if r is None else _ci(r.folds, r.folds_lo, r.folds_hi)]
+            cells += ["" if r is None else mean_ci(r.folds, r.folds_lo, r.folds_hi)]
             if "release" in cols:
-                cells += ["" if r is None else _ci(r.release, r.release_lo, r.release_hi)]
+                cells += ["" if r is None else mean_ci(r.release, r.release_lo, r.release_hi)]
             cells += ["" if r is None or r.paper != r.paper else f"{r.paper:.1f}"]
         lines.append("| " + " | ".join([m, sc, tables.threshold_label(th)] + cells) + " |")
     return "\n".join(lines) + "\n"
@@ -260,7 +260,7 @@ def paper_recall1() -> dict[float, float]:
     return dict(zip(paper["threshold"], paper["value"]))
 
 
-def _recall1(iv: pd.DataFrame) -> pd.DataFrame:
+def recall1(iv: pd.DataFrame) -> pd.DataFrame:
     """The scenario-1 recall@1 rows of an intervals table (``paper`` protocol), thresholds as floats."""
     iv = iv.assign(threshold=iv["threshold"].map(results.threshold_value))
     iv = iv[(iv["scenario"] == SCENARIO) & (iv["metric"] == "recall") & (iv["k"] == 1)]
@@ -270,7 +270,7 @@ def _recall1(iv: pd.DataFrame) -> pd.DataFrame:
 def synth_intervals(figure_dirs: list[Path]) -> pd.DataFrame:
     """Scenario-1 recall@1 rows of the mini-Hypersim studies' ``intervals.csv`` (``paper`` protocol), the first
     folder holding a (method, threshold) giving it."""
-    parts = [_recall1(pd.read_csv(f / "intervals.csv")) for f in figure_dirs if (f / "intervals.csv").is_file()]
+    parts = [recall1(pd.read_csv(f / "intervals.csv")) for f in figure_dirs if (f / "intervals.csv").is_file()]
     if not parts:
         return pd.DataFrame(columns=bootstrap.INTERVAL_COLUMNS)
     return pd.concat(parts, ignore_index=True).drop_duplicates(["method", "threshold"], keep="first")
@@ -279,7 +279,7 @@ def synth_intervals(figure_dirs: list[Path]) -> pd.DataFrame:
 def best_thresholds(iv: pd.DataFrame, synth: pd.DataFrame) -> pd.DataFrame:
     """Per graph encoder with more than one threshold: the threshold of its best mean recall@1 on the real folds
     (`iv`) and on the mini-Hypersim (`synth`, over the same thresholds)."""
-    real = _recall1(iv)
+    real = recall1(iv)
     rows = []
     for method, g in real.groupby("method", sort=False):
         if len(g) < 2:
@@ -342,7 +342,7 @@ def training_size_markdown(study: Study, base: Study, iv: pd.DataFrame, base_iv:
         return f"{'every training setting' if n is None else f'{n} training settings'} x " \
                f"{s.dataset.train_frames_per_setting} frames, {seeds} seed{'s' if seeds > 1 else ''}"
 
-    mine, theirs = _recall1(iv), _recall1(base_iv)
+    mine, theirs = recall1(iv), recall1(base_iv)
     lines = [f"# Training size ({base.name} against {study.name})", "",
              f"Recall@1 (%), scenario 1, mean over {study.protocol.folds} folds by volume [95 % bootstrap interval]: "
              f"`{base.name}` ({size(base)}) and `{study.name}` ({size(study)}); the paper's number beside.", "",
@@ -351,8 +351,8 @@ def training_size_markdown(study: Study, base: Study, iv: pd.DataFrame, base_iv:
     for r in theirs.itertuples():
         m = mine[(mine["method"] == r.method) & (mine["threshold"] == r.threshold)]
         pp = paper.get(r.threshold) if r.method == "gcn" else None
-        lines.append(f"| {r.method} | {tables.threshold_label(r.threshold)} | {_ci(r.mean, r.ci_lo, r.ci_hi)} | "
-                     + ("" if m.empty else _ci(m["mean"].iloc[0], m["ci_lo"].iloc[0], m["ci_hi"].iloc[0]))
+        lines.append(f"| {r.method} | {tables.threshold_label(r.threshold)} | {mean_ci(r.mean, r.ci_lo, r.ci_hi)} | "
+                     + ("" if m.empty else mean_ci(m["mean"].iloc[0], m["ci_lo"].iloc[0], m["ci_hi"].iloc[0]))
                      + f" | {'' if pp is None else format(pp, '.1f')} |")
     return "\n".join(lines) + "\n"
 
@@ -366,7 +366,7 @@ def reproduces_markdown(study: Study, rvs: pd.DataFrame, best: pd.DataFrame,
     edges, and the best threshold: `study`'s `rvs` and `best`) saying whether the two legs agree."""
     paper = paper_recall1()
     gcn = lambda t: t[t["method"] == "gcn"]  # noqa: E731
-    real = [(label, gcn(_recall1(x))) for label, x in sizes]
+    real = [(label, gcn(recall1(x))) for label, x in sizes]
     mini = [(label, gcn(x)) for label, x in minis]
     lines = [f"Recall@1 (%) of the paper's GCN on ground truth at each threshold: the paper's number, the real "
              f"published graphs cross-validated by volume ({study.protocol.folds} folds of the development set, "
@@ -380,7 +380,7 @@ def reproduces_markdown(study: Study, rvs: pd.DataFrame, best: pd.DataFrame,
         cells = []
         for _, x in real + mini:
             r = x[x["threshold"] == t]
-            cells.append("" if r.empty else _ci(r["mean"].iloc[0], r["ci_lo"].iloc[0], r["ci_hi"].iloc[0]))
+            cells.append("" if r.empty else mean_ci(r["mean"].iloc[0], r["ci_lo"].iloc[0], r["ci_hi"].iloc[0]))
         lines.append(f"| {tables.threshold_label(t)} | {'' if t not in paper else format(paper[t], '.1f')} | "
                      + " | ".join(cells) + " |")
     lines += ["", f"What the paper's comparisons say on each leg (`{study.name}` and the mini-Hypersim at "

@@ -41,7 +41,7 @@ def study_rows(study_name: str) -> pd.DataFrame:
     if not path.is_file():
         log.warning("training size: %s not found (run the study first): left out", path)
         return pd.DataFrame(columns=bootstrap.INTERVAL_COLUMNS)
-    return folds._recall1(pd.read_csv(path))
+    return folds.recall1(pd.read_csv(path))
 
 
 def curve() -> pd.DataFrame:
@@ -90,7 +90,7 @@ def markdown(t: pd.DataFrame) -> str:
         lines += [f"## {leg}", "", "| method | threshold (m) | " + " | ".join(sizes)
                   + f" | {sizes[-1]} against {sizes[0]} | paper |", "| --- | --- |" + " ---: |" * (len(sizes) + 2)]
         for (method, thr), rows in g.groupby(["method", "threshold"], sort=False):
-            by_size = {r.size: folds._ci(r.mean, r.ci_lo, r.ci_hi) for r in rows.itertuples()}
+            by_size = {r.size: folds.mean_ci(r.mean, r.ci_lo, r.ci_hi) for r in rows.itertuples()}
             paper = rows["paper"].iloc[0]
             lines.append(f"| {method} | {tables.threshold_label(thr)} | "
                          + " | ".join(by_size.get(s, "") for s in sizes) + f" | {change(rows, sizes)} | "
@@ -151,7 +151,7 @@ def reproduces(real_study: str = CURVE["real folds"][-1]) -> str | None:
         return None
     label = lambda name: folds.size_label(load_study(name, check_files=False))  # noqa: E731
     sizes = [(label(n), pd.read_csv(ivs[n])) for n in real_ends]
-    minis = [(label(n), folds._recall1(pd.read_csv(ivs[n]))) for n in mini_ends]
+    minis = [(label(n), folds.recall1(pd.read_csv(ivs[n]))) for n in mini_ends]
     best = folds.best_thresholds(sizes[-1][1], minis[0][1])
     return folds.reproduces_markdown(load_study(real_study, check_files=False), pd.read_csv(rvs_path), best, sizes,
                                      minis)
