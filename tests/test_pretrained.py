@@ -75,6 +75,22 @@ def test_a_vocabulary_is_seeded():
     assert a.shape == (5, 8)
 
 
+def test_the_vocabulary_sample_batch_by_batch_is_the_subsample_of_all_descriptors_at_once():
+    """`vocabulary_sample` computes the head 3 frames at a time and keeps only the chosen rows: the same rows, to the
+    bit, as every frame's descriptors computed at once and subsampled by `seeded_kmeans`' rule; and all of them when
+    there are fewer than the sample."""
+    from monolib.retrieval.baselines import sample_indices
+
+    _, head = features.networks()
+    trunk = torch.rand(10, 352, 2, 3, generator=torch.Generator().manual_seed(2)).to(torch.float16).numpy()
+    every = pretrained.local_descriptors(pretrained.head_maps(head, trunk, batch=3)).reshape(-1, 1280).numpy()
+    chosen = sample_indices(len(every), 25, seed=4)
+    np.testing.assert_array_equal(pretrained.vocabulary_sample(head, trunk, 4, sample=25, batch=3), every[chosen])
+    np.testing.assert_array_equal(pretrained.vocabulary_sample(head, trunk, 4, sample=500, batch=3), every)
+    with pytest.raises(ValueError, match="no local descriptor"):
+        pretrained.vocabulary_sample(head, trunk[:0], 4)
+
+
 # ---- the ImageNet weights ----------------------------------------------------------------------------------------
 
 def test_trunk_and_head_are_the_imagenet_classifier():

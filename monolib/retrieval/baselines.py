@@ -123,14 +123,22 @@ class BagOfWords:
         return (v / n if n > 0 else v).astype(np.float32)
 
 
+def sample_indices(n: int, sample: int, seed: int) -> np.ndarray | None:
+    """The sorted indices of `seeded_kmeans`' seeded subsample of `sample` of `n` points (None when n <= sample:
+    every point). Callers that compute their points batch by batch draw the same subsample with it."""
+    if n <= sample:
+        return None
+    return np.sort(np.random.default_rng(seed).choice(n, sample, replace=False))
+
+
 def seeded_kmeans(points: np.ndarray, k: int, seed: int, sample: int, iters: int = KMEANS_ITERS,
                   eps: float = 1e-3) -> np.ndarray:
     """(min(k, n), D) float32 centres: cv2.kmeans (k-means++ init, one attempt, seeded) on a seeded subsample of
     `sample` of the (n, D) points. The one k-means of the visual vocabularies (ORB's here, VLAD's in
     `monolib.retrieval.pretrained`)."""
-    rng = np.random.default_rng(seed)
-    if len(points) > sample:
-        points = points[np.sort(rng.choice(len(points), sample, replace=False))]
+    chosen = sample_indices(len(points), sample, seed)
+    if chosen is not None:
+        points = points[chosen]
     cv2.setRNGSeed(int(seed))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, iters, eps)
     _, _, centres = cv2.kmeans(np.ascontiguousarray(points, dtype=np.float32), min(k, len(points)), None, criteria,

@@ -34,7 +34,7 @@ from monolib import methods
 from monolib.device import device
 from monolib.perception import features
 from monolib.retrieval import training
-from monolib.retrieval.baselines import image_batches, seeded_kmeans
+from monolib.retrieval.baselines import image_batches, sample_indices, seeded_kmeans
 from monolib.retrieval.training import TrainingRule, TrainResult, training_rule
 
 METHODS = methods.IMAGENET  # (the registry's list of the image methods that read ImageNet features)
@@ -77,13 +77,34 @@ def local_descriptors(maps: torch.Tensor) -> torch.Tensor:
     return F.normalize(maps.flatten(2).transpose(1, 2), dim=2)
 
 
-def learn_vocabulary(desc: torch.Tensor, seed: int, words: int = VLAD_WORDS, sample: int = VLAD_SAMPLE) -> np.ndarray:
+def vocabulary_sample(head: nn.Module, trunk: np.ndarray | torch.Tensor, seed: int, sample: int = VLAD_SAMPLE,
+                      batch: int = HEAD_BATCH) -> np.ndarray:
+    """(min(sample, N*P), C) float32: the local descriptors of `seeded_kmeans`' seeded subsample of the N frames'
+    N*P (frame-major), computed `batch` frames at a time and only the chosen rows kept, so that the training split's
+    (N, P, C) descriptors are never held at once (at 8,640 frames they are 2.2 GB, and a few copies of them filled
+    a 24 GB machine running two cells). The same rows, to the bit, as subsampling them all at once."""
+    trunk = torch.as_tensor(trunk)
+    if len(trunk) == 0:
+        raise ValueError("imagenet_vlad: no local descriptor in the training split")
+    per_frame = int(trunk.shape[2] * trunk.shape[3])
+    chosen = sample_indices(len(trunk) * per_frame, sample, seed)
+    parts = []
+    for s in range(0, len(trunk), batch):
+        desc = local_descriptors(head_maps(head, trunk[s : s + batch], batch))
+        desc = desc.reshape(-1, desc.shape[-1]).numpy()
+        if chosen is not None:
+            lo, hi = np.searchsorted(chosen, [s * per_frame, s * per_frame + len(desc)])
+            desc = desc[chosen[lo:hi] - s * per_frame]
+        parts.append(desc.astype(np.float32))
+    return np.concatenate(parts)
+
+
+def learn_vocabulary(desc: np.ndarray, seed: int, words: int = VLAD_WORDS, sample: int = VLAD_SAMPLE) -> np.ndarray:
     """(k, C) float32 k-means centres (`baselines.seeded_kmeans`: k-means++ init, seeded) of a seeded subsample of
-    the (M, C) local descriptors."""
-    desc = desc.reshape(-1, desc.shape[-1]).numpy().astype(np.float32)
+    the (M, C) local descriptors (`vocabulary_sample`'s, which are that subsample already)."""
     if len(desc) == 0:
         raise ValueError("imagenet_vlad: no local descriptor in the training split")
-    return seeded_kmeans(desc, words, seed, sample, VLAD_ITERS, 1e-4)
+    return seeded_kmeans(np.asarray(desc, np.float32), words, seed, sample, VLAD_ITERS, 1e-4)
 
 
 def vlad(desc: torch.Tensor, centres: np.ndarray) -> np.ndarray:
@@ -121,13 +142,14 @@ def vlad_embed(trunk_train: np.ndarray, trunk_test: np.ndarray, head: nn.Module,
     """(test VLAD vectors, extra, state): the vocabulary (and the whitening) from the training split's features;
     `state` holds them (``centres``, and ``whiten_mean`` / ``whiten_projection``) for `describer`."""
     t = time.perf_counter()
-    train_desc = local_descriptors(head_maps(head, trunk_train))
-    centres = learn_vocabulary(train_desc, seed, words)
+    centres = learn_vocabulary(vocabulary_sample(head, trunk_train, seed), seed, words)
     test = vlad(local_descriptors(head_maps(head, trunk_test)), centres)
-    extra = {"vlad_words": int(len(centres)), "local_per_frame": int(train_desc.shape[1])}
+    extra = {"vlad_words": int(len(centres)), "local_per_frame": int(trunk_train.shape[2] * trunk_train.shape[3])}
     state = {"centres": torch.from_numpy(centres)}
     if whiten_dims:
-        mean, projection = learn_whitening(vlad(train_desc, centres), whiten_dims)
+        train = np.concatenate([vlad(local_descriptors(head_maps(head, trunk_train[s : s + HEAD_BATCH])), centres)
+                                for s in range(0, len(trunk_train), HEAD_BATCH)])
+        mean, projection = learn_whitening(train, whiten_dims)
         test = whiten(test, mean, projection)
         extra["whitened_dims"] = int(projection.shape[1])
         state.update(whiten_mean=torch.from_numpy(mean), whiten_projection=torch.from_numpy(projection))
