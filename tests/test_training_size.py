@@ -65,3 +65,14 @@ def test_the_reproduction_table_sets_the_paper_scale_beside_quick(figures):
     assert f"{quick_inf:.1f} [" in row and f"{quick_inf + 3:.1f} [" in row
     t = pd.read_csv(written["training_size_csv"])
     assert list(dict.fromkeys(t.loc[t["leg"] == "mini-Hypersim", "size"])) == ["48 x 20", "144 x 60"]
+
+
+def test_where_the_papers_number_lies_is_counted_per_column():
+    """`paper_inside` puts each of the paper's thresholds inside, below or above a column's interval, from the
+    paper's own Table 1 (1 m: 94.3, 2 m: 90.9, 5 m: 80.2, 10 m: 91.4, inf: 93.5)."""
+    rows = pd.DataFrame({"method": "gcn", "threshold": [0.0, 1.0, 2.0, 5.0, 10.0, math.inf],
+                         "ci_lo": [0.0, 90.0, 92.0, 70.0, 70.0, 90.0], "ci_hi": [100.0, 99.0, 99.0, 79.0, 95.0, 99.0]})
+    text = training_size.paper_inside([("a column", rows), ("another", rows.iloc[:0])])
+    assert "- a column: inside the interval at 3 of 5 thresholds; the paper's above it at 5 m; " \
+           "the paper's below it at 2 m." in text
+    assert "- another: inside the interval at 0 of 0 thresholds." in text

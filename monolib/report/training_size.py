@@ -153,8 +153,33 @@ def reproduces(real_study: str = CURVE["real folds"][-1]) -> str | None:
     sizes = [(label(n), pd.read_csv(ivs[n])) for n in real_ends]
     minis = [(label(n), folds.recall1(pd.read_csv(ivs[n]))) for n in mini_ends]
     best = folds.best_thresholds(sizes[-1][1], minis[0][1])
-    return folds.reproduces_markdown(load_study(real_study, check_files=False), pd.read_csv(rvs_path), best, sizes,
+    text = folds.reproduces_markdown(load_study(real_study, check_files=False), pd.read_csv(rvs_path), best, sizes,
                                      minis)
+    columns = [(f"real folds, {label}", folds.recall1(x)) for label, x in sizes]
+    return text + "\n" + paper_inside(columns + [(f"mini-Hypersim, {label}", x) for label, x in minis])
+
+
+def paper_inside(columns: list[tuple[str, pd.DataFrame]]) -> str:
+    """One generated line per column (``(name, scenario-1 recall@1 rows)``): at how many of the paper's thresholds
+    the interval of the paper's GCN holds the paper's number, and at which the paper's number lies above or below."""
+    paper = folds.paper_recall1()
+    lines = ["Where the paper's number lies against each interval of the paper's GCN above:", ""]
+    for name, x in columns:
+        g = x[x["method"] == "gcn"]
+        side: dict[str, list[str]] = {"inside": [], "above": [], "below": []}
+        for t, value in sorted(paper.items()):
+            r = g[g["threshold"] == t]
+            if r.empty:
+                continue
+            lo, hi = r["ci_lo"].iloc[0], r["ci_hi"].iloc[0]
+            at = tables.threshold_label(t) + ("" if math.isinf(t) else " m")
+            side["above" if value > hi else "below" if value < lo else "inside"].append(at)
+        total = sum(len(v) for v in side.values())
+        lines.append(f"- {name}: inside the interval at {len(side['inside'])} of {total} thresholds"
+                     + "".join(f"; the paper's above it at {', '.join(side[k])}" if k == "above" else
+                               f"; the paper's below it at {', '.join(side[k])}" for k in ("above", "below")
+                               if side[k]) + ".")
+    return "\n".join(lines) + "\n"
 
 
 def write(out: Path = paths.FIGURES) -> dict[str, Path]:
