@@ -57,14 +57,14 @@ import torch
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from monolib import io, locks, methods, paths, versions
-from monolib.data import labels as nyu40, selection, stage as dataset
+from monolib.data import dataset, labels as nyu40, selection
 from monolib.data.hypersim import Camera
 from monolib.device import device
-from monolib.graphs import build as graph, stage as scenegraphs
+from monolib.graphs import build as graph, scenegraphs
 from monolib.graphs.build import grouped_median, pair_mask, scene_nodes
 from monolib.io import DataFileError, atomic_path, read_json, save_torch, write_json, write_text
 from monolib.params import PAPER, DepthSpec, GCNSpec, SegmentationSpec, Study, key_of, load_study
-from monolib.perception import depth as depth_mod, segmentation as seg_mod, stage as perception
+from monolib.perception import depth as depth_mod, predictions, segmentation as seg_mod
 from monolib.perception.images import FrameRgb
 from monolib.report.results import cell_metrics
 from monolib.retrieval import baselines, cell as cells, gcn, pretrained
@@ -337,7 +337,7 @@ def _perception_files(study: Study, scenario: str) -> dict[str, tuple[str, Path]
     sc = study.scenarios[scenario]
     out = {}
     for role, name in (("semantic", sc.semantic), ("depth", sc.depth)):
-        path = perception.model_dir(study, name) / "model.pt"
+        path = predictions.model_dir(study, name) / "model.pt"
         if not path.is_file():
             raise LocalizeError(f"{path}: model {name!r} is not trained; run `monolib perception "
                                 f"{study.path or study.name}` first")
@@ -370,8 +370,8 @@ def write_state(out: str | Path, study: Study, cell: dict, state: dict | torch.n
     if not image:
         for role, (name, path) in (perception_files or _perception_files(study, cell["scenario"])).items():
             files[STATE_FILES[role]] = _copy_file(Path(path), out / STATE_FILES[role])
-            spec, task = perception._spec(study, name)
-            models[role] = {"name": name, "tag": perception.model_tag(study, name), "task": task,
+            spec, task = predictions._spec(study, name)
+            models[role] = {"name": name, "tag": predictions.model_tag(study, name), "task": task,
                             "spec": dataclasses.asdict(spec), "file": STATE_FILES[role]}
     kind = "image" if image else "graph"
     meta = {

@@ -96,7 +96,7 @@ SegmentationBackbone = Literal["resnet50", "resnet101", "mobilenet_v3_large", Ef
 DepthBackbone = Literal["resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d", "resnext101_32x8d",
                         EfficientNet]
 Projection = Literal["monograph", "exact"]  # the back-projections of the graph stage (`monolib.graphs.build`)
-Colour = Literal["hdr", "tonemapped"]       # what a node's median colour is taken over (`monolib.graphs.stage`)
+Colour = Literal["hdr", "tonemapped"]       # what a node's median colour is taken over (`monolib.graphs.scenegraphs`)
 Select = Literal["val_recall", "val_map", "val_loss", "last"]
 Schedule = Literal["constant", "cosine"]
 Conv = Literal["gcn", "gine", "gatv2", "transformer"]

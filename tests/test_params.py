@@ -353,7 +353,7 @@ def test_image_training_trains_the_image_encoders_and_nothing_else(tmp_path):
 def test_projection_is_a_study_key_each_scenario_may_override(tmp_path):
     """`graphs.projection` (default the paper's `monograph`), a scenario's own `projection`, and both in the graph
     stage's key (and so in every cell's)."""
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
 
     for name in ("quick", "paper", "ablations", "smoke", "published"):
         assert load_study(name, check_files=False).graphs.projection == "monograph", name

@@ -24,9 +24,9 @@ import pandas as pd
 import torch
 
 from monolib import device as devices, methods, paths, versions
-from monolib.data import selection, stage as dataset
+from monolib.data import dataset, selection
 from monolib.data.protocols import family
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import scenegraphs
 from monolib.io import (
     atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
 )

@@ -14,14 +14,14 @@ from pathlib import Path
 
 from monolib import lockfile, locks, methods, paths
 from monolib.device import keep_freed_memory
-from monolib.data import digest, stage as dataset
-from monolib.graphs import fidelity, stage as scenegraphs
+from monolib.data import dataset, digest
+from monolib.graphs import fidelity, scenegraphs
 from monolib.io import write_json
 from monolib.params import Study, StudyError, load_study
-from monolib.perception import features, stage as perception
+from monolib.perception import features, predictions
 from monolib.perception.images import FrameRgb
 from monolib.progress import tqdm
-from monolib.report import graph_sizes, readme, viz
+from monolib.report import graph_sizes, perception_figures, readme, viz
 from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete,
                                     refresh_metrics, run_cell, scenario_fields)
 from monolib.retrieval.grid import CellSpec, grid  # (the grid: monolib.retrieval.grid; re-exported)
@@ -218,7 +218,7 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
     sources = {s for n in built for s in (study.scenarios[n].depth, study.scenarios[n].semantic)}
     models = [] if study.graphs_root else [m for m in study.model_names() if m in sources]
     if models:
-        perception.check_weights(study)  # before any work, the rendering included
+        predictions.check_weights(study)  # before any work, the rendering included
 
     t = time.perf_counter()
     ds = None
@@ -238,9 +238,9 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
     if models:
         say("[2/5] perception")
         # every model for the run's figures (its table lists them all), else those of the graphs to build
-        perception.run(study, progress=progress, only=None if figures else models, dataset=ds, rgb=rgb)
+        predictions.run(study, progress=progress, only=None if figures else models, dataset=ds, rgb=rgb)
         if figures and not study.extends:  # the paper's Figures 3 and 4 and the training curves, into figures/
-            perception.draw_figures(study, dataset=ds)
+            perception_figures.draw_figures(study, dataset=ds)
     else:
         say("[2/5] perception: not needed (ground-truth scenarios only)")
     imagenet = [m for m in study.methods if m in methods.IMAGENET]
