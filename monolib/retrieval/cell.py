@@ -119,14 +119,14 @@ def aside(folder: Path, key: str) -> Path:
     return folder.parent.parent / ".aside" / folder.parent.name / f"{folder.name}@{key}"
 
 
-def claim(folder: Path, key: str) -> Optional[dict]:
+def take_over(folder: Path, key: str) -> Optional[dict]:
     """Make `folder` the cell of `key` without losing the cell of another key that holds it: another study file of
     the same name (other GCN settings), the same study on another device or with other code. That cell is moved
     aside (`aside`: nothing it wrote is deleted), and a cell of `key` kept aside earlier moves back.
     The cell's record when `folder` now holds the complete cell of `key`; otherwise None, and `folder` is absent,
     ready for it.
     Files of no complete cell (a killed run's) are removed. The study's lock (`monolib.locks`) keeps two runs of
-    one study from claiming at once."""
+    one study from taking one folder over at once."""
     folder = Path(folder)
     record = read_record(folder)
     if record is not None and record.get("key") == key:
@@ -268,7 +268,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     if force:
         record = None
     elif out_dir is None:
-        record = claim(folder, key)  # a cell of another key in the folder: kept aside, not lost
+        record = take_over(folder, key)  # a cell of another key in the folder: kept aside, not lost
     else:
         record = read_record(folder) if is_complete(folder, key) else None
     if record is not None:

@@ -22,8 +22,8 @@ from monolib.perception import features, predictions
 from monolib.perception.images import FrameRgb
 from monolib.progress import tqdm
 from monolib.report import graph_sizes, perception_figures, readme, viz
-from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete,
-                                    refresh_metrics, run_cell, scenario_fields)
+from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, copy_cell, graph_inputs, is_complete,
+                                    refresh_metrics, run_cell, scenario_fields, take_over)
 from monolib.retrieval.grid import CellSpec, grid  # (the grid: monolib.retrieval.grid; re-exported)
 from monolib.study import cluster
 from monolib.study.copies import same_graphs
@@ -133,7 +133,7 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
 
     cells = grid(study)
     keys, scenario_keys = _cell_keys(study, cells)
-    records = {c.name: claim(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
+    records = {c.name: take_over(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
     todo = [c for c in cells if records[c.name] is None]
     for c in cells:
         if records[c.name] is not None:  # the reported k may have changed: from the rankings, no training
