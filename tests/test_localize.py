@@ -68,7 +68,7 @@ def weights(tmp_path_factory):
 def study_file(tmp_path, change=None):
     """The smoke study as a file in tmp_path (same name, so its perception model tags are the smoke study's)."""
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
-    data["variants"] = {"label_embedding": {"gcn": {"label": "embedding"}}}
+    data["variants"] = {"label_embedding": {"gcn": {"label_encoding": "embedding"}}}
     if change:
         change(data)
     p = tmp_path / "study.yaml"
