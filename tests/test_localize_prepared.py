@@ -1,4 +1,4 @@
-"""The localizer's networks prepared for queries (`localize.prepare_network`: BatchNorm folded into the convolutions,
+"""The localizer's networks prepared for queries (`inference.prepare_network`: BatchNorm folded into the convolutions,
 the networks kept in evaluation mode) against the networks as the perception stage loads them, on real inputs: the
 project's zoo networks (quick's DeepLabV3 and Lite0 depth, trained) on photographs (scikit-image's samples at the
 study's 256 x 192); and the localizer's answers with and without the preparation, and its ranking against the
@@ -13,12 +13,12 @@ from skimage import data as samples
 
 from monolib import localize
 from monolib.params import load_study
-from monolib.perception import depth, segmentation, stage as perception, weights
+from monolib.perception import depth, inference, predictions, segmentation, weights
 
 from tests.test_localize import image, make_database, weights as smoke_weights  # noqa: F401  (fixtures)
 
 # Folding rounds each convolution's output otherwise (float32): an argmax whose two best logits nearly tie may flip.
-# On 656 JPEG photos of quick's test frames: 1 pixel of 32.2 million; depth at most 2e-6 relative.
+# The bounds leave room for such ties and nothing more: on quick's test frames as photos, a few pixels in ten million.
 MAX_CLASS_CHANGES = 0.001  # share of a frame's pixels
 MAX_DEPTH_RELATIVE = 1e-4
 
@@ -33,7 +33,7 @@ def photos() -> np.ndarray:
 def zoo_network(name: str) -> torch.nn.Module:
     """Quick's zoo network `name`, as the localizer loads it before preparing it (`localize._load_network`)."""
     study = load_study("quick")
-    spec, task = perception._spec(study, name)
+    spec, task = predictions._spec(study, name)
     net = weights.load(spec, task, spec.weights)
     return segmentation.for_inference(net).eval() if task == "segmentation" else net.eval()
 
@@ -43,9 +43,9 @@ def test_every_batchnorm_is_folded_and_the_networks_stay_as_they_were():
         net = zoo_network(name)
         before = {k: v.clone() for k, v in net.state_dict().items()}
         bns = sum(isinstance(m, torch.nn.BatchNorm2d) for m in net.modules())
-        pairs = localize.conv_batchnorm_pairs(net)
+        pairs = inference.conv_batchnorm_pairs(net)
         assert len(pairs) == bns > 0, name
-        prepared = localize.prepare_network(copy.deepcopy(net))
+        prepared = inference.prepare_network(copy.deepcopy(net))
         assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in prepared.modules()), name
         assert all(torch.equal(v, before[k]) for k, v in net.state_dict().items())  # the original untouched
         # `predict`'s train()/eval() reach the wrapper only: the network stays in evaluation mode
@@ -56,30 +56,30 @@ def test_every_batchnorm_is_folded_and_the_networks_stay_as_they_were():
 def test_prepared_segmentation_gives_the_same_classes(photos):
     net = zoo_network("deeplab")
     plain = segmentation.predict(net, photos)
-    fast = segmentation.predict(localize.prepare_network(copy.deepcopy(net)), photos)
+    fast = segmentation.predict(inference.prepare_network(copy.deepcopy(net)), photos)
     assert fast.dtype == plain.dtype and fast.shape == plain.shape == (3, 192, 256)
     assert len(np.unique(plain)) > 3  # a real input: several classes
     for a, b in zip(plain, fast):
         assert np.count_nonzero(a != b) <= MAX_CLASS_CHANGES * a.size
     # without folding the prepared network is the same computation: the same classes to the pixel
-    np.testing.assert_array_equal(segmentation.predict(localize.prepare_network(copy.deepcopy(net), fold=False),
+    np.testing.assert_array_equal(segmentation.predict(inference.prepare_network(copy.deepcopy(net), fold=False),
                                                        photos), plain)
 
 
 def test_prepared_depth_gives_the_same_depth(photos):
     net = zoo_network("depth_lite0")
     plain = depth.predict(net, photos)
-    fast = depth.predict(localize.prepare_network(copy.deepcopy(net)), photos)
+    fast = depth.predict(inference.prepare_network(copy.deepcopy(net)), photos)
     assert fast.shape == plain.shape == (3, 192, 256) and np.isfinite(plain).all() and plain.std() > 0.05
     np.testing.assert_allclose(fast, plain, rtol=MAX_DEPTH_RELATIVE, atol=0)
-    np.testing.assert_array_equal(depth.predict(localize.prepare_network(copy.deepcopy(net), fold=False), photos),
+    np.testing.assert_array_equal(depth.predict(inference.prepare_network(copy.deepcopy(net), fold=False), photos),
                                   plain)
 
 
 def test_the_localizer_answers_the_same_places_prepared_or_not(tmp_path, smoke_weights, image):  # noqa: F811
     db = make_database(tmp_path, smoke_weights)
     plain, fast = localize.Localizer.open(db, prepare=False), localize.Localizer.open(db)
-    assert isinstance(fast.segmentation, localize.QueryNetwork) and isinstance(fast.depth, localize.QueryNetwork)
+    assert isinstance(fast.segmentation, inference.QueryNetwork) and isinstance(fast.depth, inference.QueryNetwork)
     rgb = plain.read(image)
     a, b = plain.analyse(rgb), fast.analyse(rgb)
     assert np.count_nonzero(a["semantic"] != b["semantic"]) <= MAX_CLASS_CHANGES * a["semantic"].size
