@@ -151,11 +151,12 @@ def _synth(args) -> int:
 
 
 def _perception(args) -> int:
-    from monolib.perception import stage as perception  # deferred: torch
+    from monolib.perception import predictions  # deferred: torch
+    from monolib.report import perception_figures  # deferred: torch
 
     spec = load_study(args.study)
-    print(perception.run(spec).to_string(index=False))
-    perception.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
+    print(predictions.run(spec).to_string(index=False))
+    perception_figures.draw_figures(spec)  # perception_training.png, fig3_depth.png, fig4_semantics.png
     print(f"figures: {paths.figures_dir(spec.name)}")
     return 0
 

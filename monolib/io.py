@@ -76,7 +76,7 @@ def move_aside(folder: str | os.PathLike, kept: str | os.PathLike | None) -> Non
     """Make room in `folder` for the output of another key without deleting the output it holds: moved to `kept`
     (an older copy there, the same key's, is replaced), or removed when `kept` is None (the folder holds no
     complete output: a killed write's). Nothing happens when `folder` does not exist. Used by the cells
-    (`monolib.retrieval.cell.claim`) and the rendered settings (`monolib.data.synth`) of a shared runs folder."""
+    (`monolib.retrieval.cell.take_over`) and the rendered settings (`monolib.data.synth`) of a shared runs folder."""
     import shutil
 
     folder = Path(folder)

@@ -57,15 +57,16 @@ import torch
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from monolib import io, locks, methods, paths, versions
-from monolib.data import labels as nyu40, selection, stage as dataset
+from monolib.data import dataset, labels as nyu40, selection
 from monolib.data.hypersim import Camera
 from monolib.device import device
-from monolib.graphs import build as graph, stage as scenegraphs
+from monolib.graphs import build as graph, scenegraphs
 from monolib.graphs.build import grouped_median, pair_mask, scene_nodes
 from monolib.io import DataFileError, atomic_path, read_json, save_torch, write_json, write_text
 from monolib.params import PAPER, DepthSpec, GCNSpec, SegmentationSpec, Study, key_of, load_study
-from monolib.perception import depth as depth_mod, segmentation as seg_mod, stage as perception
+from monolib.perception import depth as depth_mod, predictions, segmentation as seg_mod
 from monolib.perception.images import FrameRgb
+from monolib.perception.inference import prepare_network
 from monolib.report.results import cell_metrics
 from monolib.retrieval import baselines, cell as cells, gcn, pretrained
 
@@ -337,7 +338,7 @@ def _perception_files(study: Study, scenario: str) -> dict[str, tuple[str, Path]
     sc = study.scenarios[scenario]
     out = {}
     for role, name in (("semantic", sc.semantic), ("depth", sc.depth)):
-        path = perception.model_dir(study, name) / "model.pt"
+        path = predictions.model_dir(study, name) / "model.pt"
         if not path.is_file():
             raise LocalizeError(f"{path}: model {name!r} is not trained; run `monolib perception "
                                 f"{study.path or study.name}` first")
@@ -370,8 +371,8 @@ def write_state(out: str | Path, study: Study, cell: dict, state: dict | torch.n
     if not image:
         for role, (name, path) in (perception_files or _perception_files(study, cell["scenario"])).items():
             files[STATE_FILES[role]] = _copy_file(Path(path), out / STATE_FILES[role])
-            spec, task = perception._spec(study, name)
-            models[role] = {"name": name, "tag": perception.model_tag(study, name), "task": task,
+            spec, task = predictions._spec(study, name)
+            models[role] = {"name": name, "tag": predictions.model_tag(study, name), "task": task,
                             "spec": dataclasses.asdict(spec), "file": STATE_FILES[role]}
     kind = "image" if image else "graph"
     meta = {
@@ -474,7 +475,7 @@ def index_places(out: Path, meta: dict, places: Places) -> Path:
                 z, thumb = previous[digest]
             else:
                 rgb = loc.read(path)
-                z, thumb = loc.analyse(rgb)["embedding"].numpy(), thumbnail(rgb)
+                z, thumb = loc.stages(rgb).numpy(), thumbnail(rgb)
                 new += 1
             rows.append((rel, place, digest, z, thumb))
     n = len(rows)
@@ -539,12 +540,14 @@ def check_database(db: Path, meta: dict) -> None:
         raise LocalizeError(f"{db / 'meta.json'}: {HDR_REFUSED}")
 
 
-def _load_network(db: Path, model: dict):
+def _load_network(db: Path, model: dict, prepare: bool = True):
     spec_type = SegmentationSpec if model["task"] == "segmentation" else DepthSpec
     spec = spec_type(**model["spec"])
     if model["task"] == "segmentation":
-        return seg_mod.for_inference(seg_mod.load_model(spec, db / model["file"])).eval()
-    return depth_mod.load_model(spec, db / model["file"]).eval()
+        net = seg_mod.for_inference(seg_mod.load_model(spec, db / model["file"])).eval()
+    else:
+        net = depth_mod.load_model(spec, db / model["file"]).eval()
+    return prepare_network(net) if prepare else net
 
 
 @dataclass
@@ -558,17 +561,26 @@ class Localizer:
     frames: pd.DataFrame
     describe: object = None  # an image method's descriptor function (`image_describer`); None for a graph method
 
+    def __post_init__(self):
+        settings = self.frames["setting"]
+        self._place_codes = pd.factorize(settings)[0] if len(settings) else np.zeros(0, np.int64)
+        self._places = settings.tolist()
+        self._images = self.frames["frame"].tolist()
+
     @staticmethod
-    def open(db: str | Path) -> "Localizer":
-        """The localizer of a database folder (`read_database`, `check_database`), its networks loaded."""
+    def open(db: str | Path, prepare: bool = True) -> "Localizer":
+        """The localizer of a database folder (`read_database`, `check_database`), its networks loaded (`prepare`:
+        prepared for queries, `prepare_network`)."""
         db = Path(db)
         meta, frames, emb = read_database(db)
-        return Localizer.load(db, meta, frames, emb)
+        return Localizer.load(db, meta, frames, emb, prepare)
 
     @staticmethod
     def load(db: str | Path, meta: dict, frames: pd.DataFrame | None = None,
-             emb: np.ndarray | None = None) -> "Localizer":
-        """The localizer of the state files in `db` that `meta` names (rows: `frames`, `emb`; none while indexing)."""
+             emb: np.ndarray | None = None, prepare: bool = True) -> "Localizer":
+        """The localizer of the state files in `db` that `meta` names (rows: `frames`, `emb`; none while indexing);
+        `prepare`: its perception networks prepared for queries (`prepare_network`), else as `monolib perception`
+        loads them."""
         db = Path(db)
         check_database(db, meta)
         frames = frames if frames is not None else pd.DataFrame({"frame": [], "setting": []})
@@ -577,7 +589,7 @@ class Localizer:
         if meta["kind"] == "image":
             return Localizer(db, meta, None, None, None, emb_t, frames, image_describer(meta["method"], state))
         try:
-            seg, dep = (_load_network(db, meta["models"][r]) for r in ("semantic", "depth"))
+            seg, dep = (_load_network(db, meta["models"][r], prepare) for r in ("semantic", "depth"))
             encoder = gcn.GraphEncoder(GCNSpec(**meta["encoder"]))
             encoder.load_state_dict(state)
         except (TypeError, KeyError, RuntimeError) as exc:
@@ -590,10 +602,11 @@ class Localizer:
         """`read_image` at a scale that keeps the study's resolution."""
         return read_image(path, DECODE_SCALE * max(self.meta["width"], self.meta["height"]))
 
-    def analyse(self, rgb: np.ndarray, timings: dict | None = None) -> dict:
+    def analyse(self, rgb: np.ndarray, timings: dict | None = None, drawn: bool = True) -> dict:
         """The per-image pipeline: ``frame`` (the image at the study's size), and for a graph database
-        ``semantic``, ``depth``, ``nodes`` (NYU40 ids), ``pixels`` (each node's median image column and row),
-        ``edges`` (node index pairs closer than the threshold); ``embedding`` (D,) on the CPU."""
+        ``semantic``, ``depth``, ``nodes`` (NYU40 ids), and with `drawn` what `query_figure` draws besides:
+        ``pixels`` (each node's median image column and row) and ``edges`` (node index pairs closer than the
+        threshold); ``embedding`` (D,) on the CPU."""
         t = time.perf_counter()
         w, h = self.meta["width"], self.meta["height"]
         frame = to_study_frame(rgb, w, h)
@@ -617,23 +630,27 @@ class Localizer:
         if timings is not None:
             for k, v in (("segmentation", t1 - t), ("depth", t2 - t1), ("graph", t3 - t2), ("encoder", t4 - t3)):
                 timings.setdefault(k, []).append(v)
-        keep = pair_mask(g.pair_len, threshold)
-        return {"frame": frame, "semantic": semantic, "depth": depth, "nodes": x[:, 0].astype(int),
-                "pixels": node_pixels(depth, semantic), "edges": g.pair_index[:, keep].T.numpy(), "embedding": z}
+        seen = {"frame": frame, "semantic": semantic, "depth": depth, "nodes": x[:, 0].astype(int), "embedding": z}
+        if drawn:  # (the pixels' medians cost as much as the graph's positions: only for a figure)
+            keep = pair_mask(g.pair_len, threshold)
+            seen.update(pixels=node_pixels(depth, semantic), edges=g.pair_index[:, keep].T.numpy())
+        return seen
 
     def stages(self, rgb: np.ndarray, timings: dict | None = None) -> torch.Tensor:
-        """The (D,) embedding of an image (`analyse`)."""
-        return self.analyse(rgb, timings)["embedding"]
+        """The (D,) embedding of an image (`analyse`, without what only a figure draws)."""
+        return self.analyse(rgb, timings, drawn=False)["embedding"]
 
     def rank(self, z: torch.Tensor, k: int) -> list[dict]:
-        """The k nearest places of an embedding, each by its closest database image."""
+        """The k nearest places of an embedding, each by its closest database image (ties of distance: the
+        earlier row)."""
         d = torch.cdist(z[None].float(), self.embeddings.float())[0].numpy()
-        df = self.frames.assign(distance=d, row=np.arange(len(d))).sort_values("distance", kind="stable")
-        best = df.groupby("setting", sort=False).head(1).head(k)
+        order = np.argsort(d, kind="stable")
+        _, first = np.unique(self._place_codes[order], return_index=True)  # each place's first row in `order`
+        rows = order[np.sort(first)[:k]]
         root = self.meta.get("places")
-        return [{"rank": i + 1, "place": r.setting, "distance": float(r.distance), "image": r.frame,
-                 **({"path": str(Path(root) / r.frame)} if root else {}), "row": int(r.row)}
-                for i, r in enumerate(best.itertuples())]
+        return [{"rank": i + 1, "place": self._places[r], "distance": float(d[r]), "image": self._images[r],
+                 **({"path": str(Path(root) / self._images[r])} if root else {}), "row": int(r)}
+                for i, r in enumerate(rows)]
 
     def query(self, rgb: np.ndarray, k: int = 5) -> list[dict]:
         """The k nearest places (`rank`) of an image."""
@@ -657,8 +674,9 @@ DEFAULT_K = 5
 SHOW_SUFFIXES = (".png", ".pdf", ".svg")
 
 
-def _queries(images: list[str], db: str | Path, k: int | None):
-    """(image path, localizer, `Localizer.analyse` of it, `Localizer.rank` of it) of each image."""
+def _queries(images: list[str], db: str | Path, k: int | None, drawn: bool = True):
+    """(image path, localizer, `Localizer.analyse` of it (`drawn`: with what a figure draws), `Localizer.rank` of
+    it) of each image."""
     if k is not None and k < 1:
         raise LocalizeError(f"--k {k}: expected at least 1 (the number of nearest places to list)")
     _, frames, _ = read_database(db)
@@ -670,7 +688,7 @@ def _queries(images: list[str], db: str | Path, k: int | None):
     loc = Localizer.open(db)
     rgbs = [loc.read(p) for p in images]  # every path checked before any work
     for p, rgb in zip(images, rgbs):
-        seen = loc.analyse(rgb)
+        seen = loc.analyse(rgb, drawn=drawn)
         yield p, loc, seen, loc.rank(seen["embedding"], k)
 
 
@@ -685,7 +703,7 @@ def localize(images: list[str], db: str | Path, k: int | None = None, show: str 
     if show is not None and Path(show).suffix.lower() not in SHOW_SUFFIXES:
         raise LocalizeError(f"--show {show}: expected a file name ending in {', '.join(SHOW_SUFFIXES)}")
     out = []
-    for i, (p, loc, seen, matches) in enumerate(_queries(images, db, k)):
+    for i, (p, loc, seen, matches) in enumerate(_queries(images, db, k, drawn=show is not None)):
         result = {"image": str(p), "matches": [{k_: v for k_, v in m.items() if k_ != "row"} for m in matches]}
         if show is not None:
             show = Path(show)

@@ -25,6 +25,7 @@ import yaml
 from pydantic import AfterValidator, BeforeValidator, ConfigDict, Field, Strict, ValidationError, model_validator
 from pydantic.dataclasses import dataclass
 from pydantic.fields import FieldInfo
+from pydantic_core import ArgsKwargs
 
 from monolib import paths
 from monolib.errors import StudyError  # raised here; re-exported for every caller
@@ -84,6 +85,9 @@ Seeds = Annotated[list[Int], AfterValidator(_distinct_seeds)]
 K = Annotated[Int, Field(ge=1)]  # the k of a metric at k
 Overrides = Annotated[dict, BeforeValidator(_string_keys)]  # keys of `gcn` over its values
 SCHEMA = ConfigDict(extra="forbid")  # every spec: a key it does not declare is refused, naming the key
+# keys of `gcn` by their former names -> their names: a study file that gives a former name is told the new one
+# (`GCNSpec`); `label` and `colour` elsewhere in a study file are a scenario's display name and the nodes' colour space
+RENAMED_GCN_KEYS = {"label": "label_encoding", "colour": "colour_encoding"}
 
 
 # ---- choices: each key's allowed values, declared once (the checks, the docs and the stages read them) --------
@@ -96,14 +100,14 @@ SegmentationBackbone = Literal["resnet50", "resnet101", "mobilenet_v3_large", Ef
 DepthBackbone = Literal["resnet18", "resnet34", "resnet50", "resnet101", "resnext50_32x4d", "resnext101_32x8d",
                         EfficientNet]
 Projection = Literal["monograph", "exact"]  # the back-projections of the graph stage (`monolib.graphs.build`)
-Colour = Literal["hdr", "tonemapped"]       # what a node's median colour is taken over (`monolib.graphs.stage`)
+Colour = Literal["hdr", "tonemapped"]       # what a node's median colour is taken over (`monolib.graphs.scenegraphs`)
 Select = Literal["val_recall", "val_map", "val_loss", "last"]
 Schedule = Literal["constant", "cosine"]
 Conv = Literal["gcn", "gine", "gatv2", "transformer"]
 Edges = Literal["upper", "both"]
 NodeOrder = Literal["label", "reversed", "shuffled", "brightness", "distance"]
-Label = Literal["raw", "embedding", "onehot"]
-NodeColour = Literal["raw", "standardised"]
+LabelEncoding = Literal["raw", "embedding", "onehot"]  # how the encoder reads a node's NYU40 id (`GCNSpec`)
+ColourEncoding = Literal["raw", "standardised"]       # how the encoder reads a node's colour (`GCNSpec`)
 EdgeWeight = Literal["none", "inverse"]
 Pooling = Literal["max", "meanmax", "attention"]
 Mining = Literal["random", "batch_hard", "family", "batch_hard_family"]
@@ -346,8 +350,10 @@ class GCNSpec:
         "distance (nearest to the camera first; needs node positions)")] = "label"
     linear: Annotated[Bool, _meaning("false: the published code's 5th convolution maps straight to `out`; true: a "
                                      "Linear(hidden -> out) after the convolutions")] = False
-    label: Annotated[Label, _meaning("the NYU40 id as a raw number, a learned 16-d embedding, or one-hot")] = "raw"
-    colour: Annotated[NodeColour, _meaning("node colours raw or standardised (training-set mean and std)")] = "raw"
+    label_encoding: Annotated[LabelEncoding, _meaning("how a node's NYU40 id is fed: a raw number, a learned 16-d "
+                                                      "embedding, or one-hot")] = "raw"
+    colour_encoding: Annotated[ColourEncoding, _meaning("how node colours are fed: raw or standardised (training-set "
+                                                        "mean and std)")] = "raw"
     edge_weight: Annotated[EdgeWeight, _meaning("none, or inverse (GCNConv weight 1 / (1 + length))")] = "none"
     pooling: Annotated[Pooling, _meaning("max over the nodes, meanmax (mean and max concatenated), or "
                                          "attention")] = "max"
@@ -364,6 +370,12 @@ class GCNSpec:
                                            "pooled")] = False
     message_passing: Annotated[Bool, _meaning("the convolutions read the edges; false: each node alone (the edges "
                                               "then reach the embedding through the pair readout only)")] = True
+
+    @model_validator(mode="before")
+    @classmethod
+    def _renamed(cls, data):
+        _check_renamed(data.kwargs if isinstance(data, ArgsKwargs) else data, RENAMED_GCN_KEYS)
+        return data
 
     @model_validator(mode="after")
     def _rules(self):
@@ -751,6 +763,14 @@ def _check_dataset(ds: DatasetSpec) -> None:
 def _check_network(spec: SegmentationSpec | DepthSpec) -> None:
     if spec.weights and spec.checkpoint:
         _bad("weights", "give weights (the project's zoo) or checkpoint (an outside file), not both")
+
+
+def _check_renamed(data, renamed: dict[str, str]) -> None:
+    """A mapping of a spec's keys (`data`; anything else is left to the schema) holds none of the `renamed` keys."""
+    if isinstance(data, dict):
+        for old, new in renamed.items():
+            if old in data:
+                _bad(old, f"renamed to {new}")
 
 
 def _check_encoder(g: GCNSpec) -> None:

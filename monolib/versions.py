@@ -20,18 +20,19 @@ from monolib import paths
 
 # The modules whose code decides each stage's output (the stage's own module and the ones it computes with).
 STAGE_MODULES = {
-    "dataset": ["data.stage", "data.synth", "data.synth.materials", "data.synth.furniture", "data.synth.rooms",
+    "dataset": ["data.dataset", "data.synth", "data.synth.materials", "data.synth.furniture", "data.synth.rooms",
                 "data.synth.mesh", "data.synth.raycast", "data.synth.render", "data.synth.cameras",
                 "data.synth.setting", "data.synth.dataset", "data.hypersim", "data.exact", "data.labels"],
-    "perception": ["perception.stage", "perception.images", "perception.segmentation", "perception.depth",
-                   "perception.imagenet", "perception.zoo", "perception.manifests", "perception.weights", "data.stage",
-                   "data.selection", "data.folds", "data.protocols", "data.hypersim", "data.exact", "data.labels"],
-    "graphs": ["graphs.stage", "graphs.build", "data.stage", "data.selection", "data.folds", "data.protocols",
+    "perception": ["perception.predictions", "perception.images", "perception.segmentation", "perception.depth",
+                   "perception.imagenet", "perception.zoo", "perception.manifests", "perception.weights",
+                   "data.dataset", "data.selection", "data.folds", "data.protocols", "data.hypersim", "data.exact",
+                   "data.labels"],
+    "graphs": ["graphs.scenegraphs", "graphs.build", "data.dataset", "data.selection", "data.folds", "data.protocols",
                "data.hypersim", "data.exact", "graphs.published", "methods", "data.labels"],
-    "features": ["perception.features", "perception.images", "perception.imagenet", "data.stage", "data.selection",
+    "features": ["perception.features", "perception.images", "perception.imagenet", "data.dataset", "data.selection",
                  "data.folds", "data.protocols", "data.hypersim", "data.exact", "data.labels"],
     "cells": ["retrieval.cell", "retrieval.gcn", "retrieval.training", "retrieval.baselines", "retrieval.pretrained",
-              "retrieval.evaluate", "retrieval.metrics", "methods", "graphs.build", "data.stage", "data.selection",
+              "retrieval.evaluate", "retrieval.metrics", "methods", "graphs.build", "data.dataset", "data.selection",
               "data.folds", "data.protocols", "data.hypersim", "data.exact", "data.labels"],
 }
 # What a stage's modules may import beyond their own list (`tests/test_cache.py` holds every import to this):
@@ -51,11 +52,10 @@ STAGE_LIBRARIES = {
     "features": ["torch", "timm", "numpy"],
     "cells": ["torch", "torch_geometric", "numpy", "opencv-python-headless", "torchvision"],
 }
-# Functions of a stage's module that draw or show and compute no cached output: left out of its version, so that
-# a change to a figure does not recompute the stage.
+# Functions of a stage's module that compute no cached output (a stage's figures live in `monolib.report`, outside
+# every version): left out of its version, so that a change to one does not recompute the stage.
 PRESENTATION_FUNCTIONS = {
-    "perception.stage": {"plot_training", "plot_depth_examples", "plot_semantic_examples", "draw_figures", "wide",
-                   "_write_if_changed"},
+    "perception.predictions": {"_write_if_changed"},  # the copy of the metrics table in figures/
 }
 
 

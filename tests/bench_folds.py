@@ -53,7 +53,7 @@ def main(work: Path) -> dict:
     os.environ["MONOLIB_RUNS"] = str(work / "runs")  # before monolib reads it
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
     from monolib import paths
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from monolib.params import load_study
     from monolib.retrieval.cell import run_cell
     from tests.published_files import release_size

@@ -7,7 +7,7 @@ import pytest
 
 from monolib import methods
 from monolib.data.selection import Selection, select_frames
-from monolib.data.stage import ensure_dataset
+from monolib.data.dataset import ensure_dataset
 from monolib.params import load_study
 from monolib.retrieval import baselines
 from monolib.retrieval.training import training_rule

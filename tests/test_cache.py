@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from monolib import io, paths, versions
-from monolib.data import selection, stage as dataset
-from monolib.graphs import stage as scenegraphs
+from monolib.data import dataset, selection
+from monolib.graphs import scenegraphs
 from monolib.params import load_study
-from monolib.perception import stage as perception
+from monolib.perception import predictions
 from monolib.report import graph_sizes
 from monolib.retrieval import cell
 
@@ -39,16 +39,16 @@ def fake_predictions(s, name="deeplab"):
     with its metrics and marker, as the perception stage leaves them."""
     frames = frames_of(s)
     for f in frames:
-        io.write_h5(perception.prediction_path(s, name, f), f.semantic.astype(np.int16))
-    io.write_json(perception.model_dir(s, name) / "metrics.json", {"pixel_accuracy": 1.0, "miou": 1.0})
-    io.write_json(perception.predictions_dir(s, name) / "_complete.json", {"frames": sorted(f.key for f in frames)})
+        io.write_h5(predictions.prediction_path(s, name, f), f.semantic.astype(np.int16))
+    io.write_json(predictions.model_dir(s, name) / "metrics.json", {"pixel_accuracy": 1.0, "miou": 1.0})
+    io.write_json(predictions.predictions_dir(s, name) / "_complete.json", {"frames": sorted(f.key for f in frames)})
     return frames
 
 
 # ---- missing predictions are an error, never empty graphs ------------------------------------------------------
 
 def test_missing_predictions_stop_the_graph_stage_and_cache_nothing(study):
-    with pytest.raises(perception.PredictionsMissing) as err:
+    with pytest.raises(predictions.PredictionsMissing) as err:
         scenegraphs.load(study, "s2")  # GT depth, DeepLabV3 semantics: perception has not run
     msg = str(err.value)
     assert "'deeplab'" in msg and "monolib perception" in msg
@@ -58,16 +58,16 @@ def test_missing_predictions_stop_the_graph_stage_and_cache_nothing(study):
 
 def test_a_truncated_prediction_is_an_error_and_is_predicted_again(study):
     frames = fake_predictions(study)
-    assert perception._complete(study, "deeplab", frames)
-    bad = perception.prediction_path(study, "deeplab", frames[3])
+    assert predictions._complete(study, "deeplab", frames)
+    bad = predictions.prediction_path(study, "deeplab", frames[3])
     data = bad.read_bytes()
     bad.write_bytes(data[: len(data) // 2])
-    with pytest.raises(perception.PredictionsMissing) as err:
+    with pytest.raises(predictions.PredictionsMissing) as err:
         scenegraphs.load(study, "s2")
     assert str(bad) in str(err.value) and "'deeplab'" in str(err.value)
     assert not scenegraphs.graphs_path(study, "s2").exists()  # nothing cached
     assert not bad.exists()  # removed: the perception stage predicts that frame again
-    assert not perception._complete(study, "deeplab", frames)
+    assert not predictions._complete(study, "deeplab", frames)
 
 
 def test_predictions_complete_give_graphs(study):
@@ -212,14 +212,14 @@ def test_source_version_ignores_comments_and_docstrings_but_not_code():
 
 
 def test_a_changed_graph_builder_gives_new_graph_and_cell_keys_only(study, monkeypatch):
-    before = {"model": perception.model_key(study, "deeplab"), "graphs": scenegraphs.scenario_key(study, "s1"),
+    before = {"model": predictions.model_key(study, "deeplab"), "graphs": scenegraphs.scenario_key(study, "s1"),
               "cell": cell.cell_key(study, "gcn", "s1", 1.0, 0), "data": dataset.dataset_key(study)}
     real = versions.module_version
     monkeypatch.setattr(versions, "module_version",
                         lambda m: real(m) + ("-changed" if m == "graphs.build" else ""))
     versions.code_version.cache_clear()
     try:
-        after = {"model": perception.model_key(study, "deeplab"), "graphs": scenegraphs.scenario_key(study, "s1"),
+        after = {"model": predictions.model_key(study, "deeplab"), "graphs": scenegraphs.scenario_key(study, "s1"),
                  "cell": cell.cell_key(study, "gcn", "s1", 1.0, 0), "data": dataset.dataset_key(study)}
     finally:
         versions.code_version.cache_clear()
@@ -229,7 +229,7 @@ def test_a_changed_graph_builder_gives_new_graph_and_cell_keys_only(study, monke
 
 def test_keys_hold_the_device_and_the_deterministic_mode(study):
     other = dataclasses.replace(study, deterministic=False)
-    assert perception.model_key(other, "deeplab") != perception.model_key(study, "deeplab")
+    assert predictions.model_key(other, "deeplab") != predictions.model_key(study, "deeplab")
     assert cell.cell_key(other, "gcn", "s1", 1.0, 0) != cell.cell_key(study, "gcn", "s1", 1.0, 0)
 
 

@@ -8,7 +8,7 @@ from hypersim_files import write_setting
 
 from monolib import cli, paths
 from monolib.data.hypersim import HdrMissing, HypersimDataset, tonemap
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import scenegraphs
 from monolib.graphs.build import grouped_median_u8
 from monolib.io import read_h5, write_h5
 from monolib.params import StudyError, load_study

@@ -46,7 +46,8 @@ def test_depth_forward_and_loss_terms_on_one_device(backbone):
     assert log_pred.device == META and log_pred.shape == (2, 48, 64) and loss.device == META and loss.ndim == 0
 
 
-@pytest.mark.parametrize("choice", [{}, {"label": "embedding", "colour": "standardised", "pooling": "meanmax"},
+@pytest.mark.parametrize("choice", [{}, {"label_encoding": "embedding", "colour_encoding": "standardised",
+                                         "pooling": "meanmax"},
                                     {"conv": "gine"}, {"edge_weight": "inverse"}])
 def test_graph_encoder_forward_and_losses_on_one_device(choice):
     import torch.fx.experimental._config as fx_config

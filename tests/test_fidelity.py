@@ -397,7 +397,7 @@ def test_an_exact_study_measures_its_pairs_in_both_cameras(tmp_path, monkeypatch
     """`monolib fidelity` on an `exact` study: its graphs in its own camera, and the same frames built again in the
     original code's camera, whose lengths are those of the original formula on the files; fidelity.md shows both."""
     from monolib import cli
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from hypersim_files import write_setting
 
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")

@@ -100,8 +100,8 @@ def test_the_mini_hypersim_refuses_folds_and_keeps_its_keys(monkeypatch):
     """Studies without folds keep their cell names, their data and graph keys (computed with the code before folds
     existed, the code and library versions, which change with any edit, held fixed) and a cell key without a fold
     part."""
-    from monolib.data import stage as dataset
-    from monolib.graphs import stage as scenegraphs
+    from monolib.data import dataset
+    from monolib.graphs import scenegraphs
     from monolib.retrieval import cell
 
     monkeypatch.setattr(versions, "code_version", lambda stage: "CODE")

@@ -73,8 +73,8 @@ CHOICES = [
     {"edges": "both"},
     {"linear": True},
     {"node_order": "shuffled"},
-    {"label": "embedding", "colour": "standardised"},
-    {"label": "onehot"},
+    {"label_encoding": "embedding", "colour_encoding": "standardised"},
+    {"label_encoding": "onehot"},
     {"edge_weight": "inverse"},
     {"conv": "gine"},
     {"conv": "gatv2"},
@@ -143,19 +143,19 @@ def with_lengths_times(graphs, factor):
     return [g.clone().update({"edge_attr": g.edge_attr * factor}) for g in graphs]
 
 
-def test_label_and_colour_options_change_the_node_features():
+def test_label_and_colour_encodings_change_the_node_features():
     graphs = graphs_at(math.inf, GCNSpec())
-    base, emb_ = twin_encoders(label="embedding")
+    base, emb_ = twin_encoders(label_encoding="embedding")
     assert shapes(base)["convs.0.lin.weight"] == (128, 4)                       # raw id + R, G, B
     assert shapes(emb_)["label_embedding.weight"] == (41, 16) and shapes(emb_)["convs.0.lin.weight"] == (128, 19)
     assert "label_embedding.weight" not in shapes(base)
-    _, onehot = twin_encoders(label="onehot")
+    _, onehot = twin_encoders(label_encoding="onehot")
     assert shapes(onehot)["convs.0.lin.weight"] == (128, 44)                    # 41 one-hot + R, G, B
     x = torch.cat([g.x for g in graphs])
     f = onehot.features(x)
     assert (f[:, :41].sum(1) == 1).all() and (f[:, :41].argmax(1) == x[:, 0].long()).all()
     torch.testing.assert_close(base.features(x), x)                            # the paper: the numbers as they are
-    _, std = twin_encoders(colour="standardised")
+    _, std = twin_encoders(colour_encoding="standardised")
     std.set_colour_stats(graphs)
     colour = std.features(x)[:, 1:]
     torch.testing.assert_close(colour.mean(0), torch.zeros(3), atol=1e-5, rtol=0)
@@ -334,7 +334,8 @@ def test_the_edge_list_path_of_devices_without_sparse_products_gives_the_same_em
     assert torch.allclose(sparse, edges, atol=1e-5) and not torch.equal(sparse, torch.zeros_like(sparse))
 
 
-@pytest.mark.parametrize("choice", [{}, {"edges": "upper"}, {"label": "embedding", "colour": "standardised"},
+@pytest.mark.parametrize("choice", [{}, {"edges": "upper"},
+                                    {"label_encoding": "embedding", "colour_encoding": "standardised"},
                                     {"edge_weight": "inverse"}, {"conv": "gine"}, {"conv": "gatv2"},
                                     {"pair_readout": True, "message_passing": False}])
 def test_reads_edge_attr_says_whether_the_lengths_reach_the_embedding(choice):

@@ -138,7 +138,7 @@ def test_a_frame_with_a_missing_file_becomes_an_empty_graph(tmp_path, monkeypatc
     from hypersim_files import write_setting
 
     from monolib import paths
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from monolib.params import load_study
 
     root = tmp_path / "data"
@@ -252,7 +252,7 @@ def test_an_unknown_projection_is_refused():
 def test_a_graphs_file_is_read_once_per_version_of_it(tmp_path):
     """The graph stage's reader keeps what it read by the file's identity (the cells a warm kernel runs in a row
     read their scenario's file once) and reads a rebuilt file again."""
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from monolib.io import save_torch
 
     path = tmp_path / "s1-key.pt"

@@ -1,6 +1,6 @@
 """Each stage's key holds exactly what decides its output: every change below that should not matter (a name, a
 label, a path, a worker count, the k of the metrics) keeps the key, and every change that should gives a new one.
-(The keys: `dataset.dataset_key`, `perception.model_key`, `scenegraphs.scenario_key`, `cell.cell_key`.)"""
+(The keys: `dataset.dataset_key`, `predictions.model_key`, `scenegraphs.scenario_key`, `cell.cell_key`.)"""
 import copy
 import json
 import shutil
@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from monolib import paths, versions
-from monolib.data import stage as dataset
-from monolib.graphs import stage as scenegraphs
+from monolib.data import dataset
+from monolib.graphs import scenegraphs
 from monolib.params import load_study
-from monolib.perception import stage as perception
+from monolib.perception import predictions
 from monolib.retrieval import cell
 
 pytestmark = pytest.mark.shares_runs
@@ -47,8 +47,8 @@ def keys(s, depth_name=None, seg_name=None):
     depth_name = depth_name or s.perception.depth[0].name
     seg_name = seg_name or s.perception.segmentation.name
     sc = next(n for n, v in s.scenarios.items() if v.depth == depth_name)
-    return {"dataset": dataset.dataset_key(s), "depth": perception.model_key(s, depth_name),
-            "segmentation": perception.model_key(s, seg_name), "graphs": scenegraphs.scenario_key(s, sc),
+    return {"dataset": dataset.dataset_key(s), "depth": predictions.model_key(s, depth_name),
+            "segmentation": predictions.model_key(s, seg_name), "graphs": scenegraphs.scenario_key(s, sc),
             "cell": cell.cell_key(s, "gcn", sc, 2.0, 0), "image": cell.cell_key(s, "color_hist", "rgb", 2.0, 0)}
 
 
@@ -161,18 +161,21 @@ def test_a_checkpoint_by_its_content_not_its_path(tmp_path):
     def with_checkpoint(path):
         s = study()
         s.perception.depth[0].checkpoint = str(path)
-        return perception.model_key(s, s.perception.depth[0].name)
+        return predictions.model_key(s, s.perception.depth[0].name)
 
     assert with_checkpoint(first) == with_checkpoint(moved) != REFERENCE["depth"]
     moved.write_bytes(b"weights two")
     assert with_checkpoint(moved) != with_checkpoint(first)
 
 
-def test_the_plots_of_the_perception_module_are_not_part_of_its_version():
-    """A figure's code edited: the stage's version stays; a line of the stage's computation edited: it moves."""
-    src = (paths.PACKAGE / "perception" / "stage.py").read_text()
+def test_the_perception_figures_are_not_part_of_its_version():
+    """The stage's figures live in a module of no stage's version: an edited figure recomputes nothing. Of the
+    stage's own module, a function that computes no cached output edited: the version stays; a line of the stage's
+    computation edited: it moves."""
+    assert not any("report.perception_figures" in modules for modules in versions.STAGE_MODULES.values())
+    src = (paths.PACKAGE / "perception" / "predictions.py").read_text()
     base = versions.source_version
-    drop = versions.PRESENTATION_FUNCTIONS["perception.stage"]
+    drop = versions.PRESENTATION_FUNCTIONS["perception.predictions"]
     import ast
 
     def version(text):
@@ -180,9 +183,9 @@ def test_the_plots_of_the_perception_module_are_not_part_of_its_version():
         tree.body = [n for n in tree.body if not (isinstance(n, ast.FunctionDef) and n.name in drop)]
         return base(ast.unparse(tree))
 
-    plot = "def plot_training("
-    assert plot in src
-    assert version(src.replace(plot, "def plot_training(extra_argument=None, *, ", 1)) == version(src)
+    helper = "def _write_if_changed("
+    assert helper in src
+    assert version(src.replace(helper, "def _write_if_changed(extra_argument=None, *, ", 1)) == version(src)
     assert version(src.replace("MAX_NONFINITE_SHARE = 0.001", "MAX_NONFINITE_SHARE = 0.01", 1)) != version(src)
 
 

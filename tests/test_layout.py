@@ -112,9 +112,9 @@ def test_a_cell_computes_each_upstream_key_once(smoke_study, tmp_path):
     finally:
         sys.setprofile(None)
     assert record["metrics"]
-    assert calls["monolib.graphs.stage.scenario_key"] == 1
-    assert calls["monolib.data.stage.dataset_key"] == 1
-    assert calls["monolib.perception.stage.model_key"] == 2  # its depth net and its segmentation net
+    assert calls["monolib.graphs.scenegraphs.scenario_key"] == 1
+    assert calls["monolib.data.dataset.dataset_key"] == 1
+    assert calls["monolib.perception.predictions.model_key"] == 2  # its depth net and its segmentation net
     assert calls["monolib.retrieval.cell.cell_key"] == 1
 
 

@@ -424,7 +424,7 @@ def split(spec: GCNSpec):
 @pytest.mark.parametrize("mining, other, choice", [
     ("family", "random", dict(family_share=1.0)),
     ("batch_hard_family", "batch_hard", dict(pair_readout=True, message_passing=False, edge_layout=True,
-                                             node_layout=True, label="embedding", pooling="meanmax")),
+                                             node_layout=True, label_encoding="embedding", pooling="meanmax")),
 ])
 def test_family_mining_trains_deterministically(mining, other, choice):
     spec = small(mining=mining, **choice)

@@ -49,13 +49,13 @@ def image(tmp_path):
 def weights(tmp_path_factory):
     """Untrained segmentation and depth networks of the smoke study's specs, saved as the perception stage saves
     them: ``{role: (model name, file)}`` for `localize.write_database`."""
-    from monolib.perception import depth, segmentation, stage as perception
+    from monolib.perception import depth, predictions, segmentation
 
     s = load_study("smoke")
     folder = tmp_path_factory.mktemp("weights")
     out = {}
     for role, name in (("semantic", "deeplab"), ("depth", "depth_a")):
-        spec, task = perception._spec(s, name)
+        spec, task = predictions._spec(s, name)
         spec = copy.copy(spec)
         spec.pretrained = False
         net = segmentation if task == "segmentation" else depth
@@ -68,7 +68,7 @@ def weights(tmp_path_factory):
 def study_file(tmp_path, change=None):
     """The smoke study as a file in tmp_path (same name, so its perception model tags are the smoke study's)."""
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
-    data["variants"] = {"label_embedding": {"gcn": {"label": "embedding"}}}
+    data["variants"] = {"label_embedding": {"gcn": {"label_encoding": "embedding"}}}
     if change:
         change(data)
     p = tmp_path / "study.yaml"

@@ -129,6 +129,26 @@ def test_bad_study_names_the_key(tmp_path, change, key):
         load_study(write(tmp_path, change))
 
 
+@pytest.mark.parametrize("change, key, new", [
+    (lambda d: d["gcn"].update(label="embedding"), "gcn.label", "label_encoding"),
+    (lambda d: d["gcn"].update(colour="standardised"), "gcn.colour", "colour_encoding"),
+    (lambda d: d.update(variants={"ours": {"gcn": {"pooling": "meanmax", "label": "embedding"}}}),
+     "variants.ours.gcn.label", "label_encoding"),
+    (lambda d: d.update(variants={"ours": {"gcn": {"colour": "standardised"}}}),
+     "variants.ours.gcn.colour", "colour_encoding"),
+])
+def test_an_encoders_old_key_is_told_its_new_name(tmp_path, change, key, new):
+    """The encoder's `label` and `colour` (how it reads a node's NYU40 id and colour) are `label_encoding` and
+    `colour_encoding`: a study file that still gives the old key gets one error naming the file, the key and the new
+    name; a scenario's `label` and `colour` and `graphs.colour` keep their names."""
+    path = write(tmp_path, change)
+    with pytest.raises(StudyError) as err:
+        load_study(path)
+    assert str(err.value) == f"{path.resolve()}: {key}: renamed to {new}"
+    with pytest.raises(Exception, match=f"{key.rsplit('.', 1)[1]}: renamed to {new}"):
+        GCNSpec(**{key.rsplit(".", 1)[1]: "raw"})
+
+
 def test_unknown_study_lists_the_known_ones():
     with pytest.raises(StudyError, match="smoke"):
         load_study("no_such_study")
@@ -353,7 +373,7 @@ def test_image_training_trains_the_image_encoders_and_nothing_else(tmp_path):
 def test_projection_is_a_study_key_each_scenario_may_override(tmp_path):
     """`graphs.projection` (default the paper's `monograph`), a scenario's own `projection`, and both in the graph
     stage's key (and so in every cell's)."""
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
 
     for name in ("quick", "paper", "ablations", "smoke", "published"):
         assert load_study(name, check_files=False).graphs.projection == "monograph", name

@@ -98,7 +98,7 @@ def tiny_study(tiny, tmp_path, monkeypatch):
 
 def _frames(study, val=1):
     from monolib.data.selection import select_frames
-    from monolib.data.stage import open_dataset
+    from monolib.data.dataset import open_dataset
 
     return select_frames(study, open_dataset(study), val)
 
@@ -163,7 +163,7 @@ def test_depth_loss_masks_nan():
 
 
 def test_metrics_on_degenerate_frames():
-    from monolib.perception.stage import evaluate_depth, evaluate_segmentation
+    from monolib.perception.predictions import evaluate_depth, evaluate_segmentation
 
     gt = np.array([[1, 2], [2, -1]], np.int16)
     empty = np.full((2, 2), -1, np.int16)
@@ -179,9 +179,9 @@ def test_metrics_on_degenerate_frames():
 
 @pytest.mark.slow
 def test_run_caches_and_round_trips(tiny_study):
-    from monolib.perception import depth, segmentation, stage as perception
+    from monolib.perception import depth, predictions, segmentation
 
-    table = perception.run(tiny_study, progress=False)
+    table = predictions.run(tiny_study, progress=False)
     assert set(table.attrs["status"].values()) == {"done"}
     assert np.isfinite(table["value"]).all(), table
     assert (paths.figures_dir("smoke") / "perception.csv").is_file()
@@ -191,36 +191,36 @@ def test_run_caches_and_round_trips(tiny_study):
     d_name = tiny_study.perception.depth[0].name
     # every frame is cached; the cache equals what the saved model predicts (write -> read equals)
     model = segmentation.load_model(tiny_study.perception.segmentation,
-                                    perception.model_dir(tiny_study, seg_name) / "model.pt")
+                                    predictions.model_dir(tiny_study, seg_name) / "model.pt")
     fresh = segmentation.predict(model, np.stack([f.rgb for f in frames[:4]]), amp=tiny_study.perception.amp)
-    read = perception.semantic_source(tiny_study, seg_name)
+    read = predictions.semantic_source(tiny_study, seg_name)
     assert all(np.array_equal(read(f), p) for f, p in zip(frames[:4], fresh))
-    dmodel = depth.load_model(tiny_study.perception.depth[0], perception.model_dir(tiny_study, d_name) / "model.pt")
+    dmodel = depth.load_model(tiny_study.perception.depth[0], predictions.model_dir(tiny_study, d_name) / "model.pt")
     dfresh = depth.predict(dmodel, np.stack([f.rgb for f in frames[:4]]), amp=tiny_study.perception.amp)
-    dread = perception.depth_source(tiny_study, d_name)
+    dread = predictions.depth_source(tiny_study, d_name)
     assert all(np.allclose(dread(f), p, rtol=1e-5) for f, p in zip(frames[:4], dfresh))
     # the degenerate test frames (all-NaN depth, no labelled pixel) read fine from every source
     nan_frame, unlabelled = sel.test[0], sel.test[1]
-    assert np.isnan(perception.depth_source(tiny_study, "gt")(nan_frame)).all()
-    assert (perception.semantic_source(tiny_study, "gt")(unlabelled) == -1).all()
+    assert np.isnan(predictions.depth_source(tiny_study, "gt")(nan_frame)).all()
+    assert (predictions.semantic_source(tiny_study, "gt")(unlabelled) == -1).all()
     for f in (nan_frame, unlabelled):
         assert np.isfinite(dread(f)).all() and read(f).shape == (H, W)
     # a missing prediction is one clear error naming the file
-    path = perception.prediction_path(tiny_study, seg_name, frames[0])
+    path = predictions.prediction_path(tiny_study, seg_name, frames[0])
     path.unlink()
-    with pytest.raises(perception.PredictionsMissing, match=rf"'{seg_name}'.*{path.name}.*monolib perception"):
+    with pytest.raises(predictions.PredictionsMissing, match=rf"'{seg_name}'.*{path.name}.*monolib perception"):
         read(frames[0])
     io.write_h5(path, fresh[0])
     # a second run does no work: status cached, no file touched
     files = sorted(p for p in paths.RUNS.rglob("*") if p.is_file()) + sorted(paths.FIGURES.rglob("*.csv"))
     before = {p: os.stat(p).st_mtime_ns for p in files}
-    again = perception.run(tiny_study, progress=False)
+    again = predictions.run(tiny_study, progress=False)
     assert set(again.attrs["status"].values()) == {"cached"}
     assert {p: os.stat(p).st_mtime_ns for p in files} == before
     # a GCN / scenario / threshold change keeps the cache keys
-    keys = [perception.model_key(tiny_study, n) for n in tiny_study.model_names()]
+    keys = [predictions.model_key(tiny_study, n) for n in tiny_study.model_names()]
     tiny_study.gcn.epochs, tiny_study.thresholds = 99, [3.0]
-    assert keys == [perception.model_key(tiny_study, n) for n in tiny_study.model_names()]
+    assert keys == [predictions.model_key(tiny_study, n) for n in tiny_study.model_names()]
 
 
 def _png_is_a_picture(path: Path, min_size: tuple[int, int]) -> np.ndarray:
@@ -245,35 +245,36 @@ def test_figures(tiny_study):
     import matplotlib.pyplot as plt
 
     from monolib.data.labels import colourize
-    from monolib.perception import depth, stage as perception
+    from monolib.perception import depth, predictions
+    from monolib.report import perception_figures
 
-    perception.run(tiny_study, progress=False)
+    predictions.run(tiny_study, progress=False)
     fig_dir = paths.figures_dir("smoke")
     depth_models = [d.name for d in tiny_study.perception.depth]
-    frames = perception._test_frames(tiny_study, 3)
+    frames = perception_figures._test_frames(tiny_study, 3)
     assert len(frames) == 3
 
-    fig = perception.plot_training(tiny_study)
+    fig = perception_figures.plot_training(tiny_study)
     _png_is_a_picture(fig_dir / "perception_training.png", (500, 200))
     loss, metric = fig.axes
     assert (loss.get_title(), metric.get_title()) == ("training loss", "validation metric")
     assert [line.get_label() for line in loss.lines] == tiny_study.model_names()
     for line, name in zip(loss.lines, tiny_study.model_names()):
-        h = io.read_json(perception.model_dir(tiny_study, name) / "history.json")["epochs"]
+        h = io.read_json(predictions.model_dir(tiny_study, name) / "history.json")["epochs"]
         assert list(line.get_xdata()) == [r["epoch"] for r in h]
         assert list(line.get_ydata()) == pytest.approx([r["train_loss"] for r in h])
     assert [line.get_label() for line in metric.lines] == [f"{tiny_study.perception.segmentation.name} (mIoU)"] + \
         [f"{n} (delta<1.25)" for n in depth_models]
     plt.close(fig)
 
-    fig = perception.plot_depth_examples(tiny_study)
+    fig = perception_figures.plot_depth_examples(tiny_study)
     _png_is_a_picture(fig_dir / "fig3_depth.png", (500, 200))
     ncol = 1 + 2 * (1 + len(depth_models))                    # RGB, then GT + each model in metres and 0..1
     assert len(fig.axes) == 3 * ncol
     assert [a.get_title() for a in fig.axes[:ncol]] == ["RGB"] + [f"{m} (m)" for m in ["ground truth"] + depth_models] \
         + [f"{m} (0..1)" for m in ["ground truth"] + depth_models]
     d_name = depth_models[0]
-    model = depth.load_model(tiny_study.perception.depth[0], perception.model_dir(tiny_study, d_name) / "model.pt")
+    model = depth.load_model(tiny_study.perception.depth[0], predictions.model_dir(tiny_study, d_name) / "model.pt")
     for r, f in enumerate(frames):
         row = fig.axes[r * ncol : (r + 1) * ncol]
         np.testing.assert_array_equal(row[0].images[0].get_array(), f.rgb)
@@ -283,12 +284,12 @@ def test_figures(tiny_study):
         assert f.setting in row[0].get_ylabel()
     plt.close(fig)
 
-    fig = perception.plot_semantic_examples(tiny_study)
+    fig = perception_figures.plot_semantic_examples(tiny_study)
     _png_is_a_picture(fig_dir / "fig4_semantics.png", (400, 300))
     assert len(fig.axes) == 3 * 3
     assert [a.get_title() for a in fig.axes[:3]] == ["RGB", "ground truth",
                                                       f"DeepLabV3 ({tiny_study.perception.segmentation.name})"]
-    pred = perception.semantic_source(tiny_study, tiny_study.perception.segmentation.name)
+    pred = predictions.semantic_source(tiny_study, tiny_study.perception.segmentation.name)
     for r, f in enumerate(frames):
         rgb, gt, pr = (a.images[0].get_array() for a in fig.axes[3 * r : 3 * r + 3])
         np.testing.assert_array_equal(rgb, f.rgb)
@@ -350,28 +351,28 @@ def _read_predictions(study, name, frames):
 
 
 def perception_path(study, name, frame):
-    from monolib.perception import stage as perception
+    from monolib.perception import predictions
 
-    return perception.prediction_path(study, name, frame)
+    return predictions.prediction_path(study, name, frame)
 
 
 @pytest.mark.slow
 def test_loader_workers_change_no_prediction(tiny_study):
     """Frames read by 2 worker processes give the predictions of frames read in the main process, bit for bit, each
     written to its own frame's file (36 frames in batches of 5: a last batch of 1)."""
-    from monolib.perception import stage as perception
+    from monolib.perception import predictions
 
     torch.set_num_threads(1)
     frames = _frames(tiny_study).all()
     tiny_study.perception.predict_batch = 5
     for name, task, model in _untrained(tiny_study):
         tiny_study.perception.loader_workers = 0
-        assert perception._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
+        assert predictions._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
         in_main = _read_predictions(tiny_study, name, frames)
         for f in frames:
             perception_path(tiny_study, name, f).unlink()
         tiny_study.perception.loader_workers = 2
-        assert perception._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
+        assert predictions._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
         in_workers = _read_predictions(tiny_study, name, frames)
         assert len({p.tobytes() for p in in_main}) > 1  # different frames, different predictions
         assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(in_main, in_workers)), name
@@ -383,7 +384,7 @@ def test_the_passes_read_each_frame_once_and_predict_the_same(tiny_study, monkey
     predicts from it what it predicts from the files read by its own pass, bit for bit; frames that do not fit in
     its memory are read again by every pass (and batched the same). Reads counted in the main process (0 loader
     workers); `test_loader_workers_change_no_prediction` holds the workers' side."""
-    from monolib.perception import images, stage as perception
+    from monolib.perception import images, predictions
 
     torch.set_num_threads(1)
     frames = _frames(tiny_study).all()
@@ -395,11 +396,11 @@ def test_the_passes_read_each_frame_once_and_predict_the_same(tiny_study, monkey
     shared = images.FrameRgb(0)
     nets = _untrained(tiny_study)
     for name, task, model in nets:
-        assert perception._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
+        assert predictions._predict_all(tiny_study, name, model, frames, progress=False)[:2] == (len(frames),) * 2
         from_files = _read_predictions(tiny_study, name, frames)
         for f in frames:
             perception_path(tiny_study, name, f).unlink()
-        assert perception._predict_all(tiny_study, name, model, frames, progress=False,
+        assert predictions._predict_all(tiny_study, name, model, frames, progress=False,
                                        rgb=shared)[:2] == (len(frames),) * 2
         held = _read_predictions(tiny_study, name, frames)
         assert all(a.dtype == b.dtype and np.array_equal(a, b) for a, b in zip(from_files, held)), name
@@ -458,13 +459,13 @@ def test_a_stopped_run_predicts_only_the_missing_frames(tiny_study, monkeypatch)
     """A run stopped after 7 files keeps them; the next run writes only the other frames' files, runs the network on
     their batches only (the 2nd batch of 4, partly written, again: the same batches as an uninterrupted run), touches
     no file already written, and ends with the predictions of an uninterrupted run, bit for bit."""
-    from monolib.perception import stage as perception
+    from monolib.perception import predictions
 
     torch.set_num_threads(1)
     frames = _frames(tiny_study).all()
     tiny_study.perception.predict_batch, tiny_study.perception.loader_workers = 4, 2
     name, task, model = _untrained(tiny_study)[1]
-    perception._predict_all(tiny_study, name, model, frames, progress=False)
+    predictions._predict_all(tiny_study, name, model, frames, progress=False)
     whole = _read_predictions(tiny_study, name, frames)
     for f in frames:
         perception_path(tiny_study, name, f).unlink()
@@ -479,15 +480,15 @@ def test_a_stopped_run_predicts_only_the_missing_frames(tiny_study, monkeypatch)
 
     monkeypatch.setattr(io, "write_h5", write_then_stop)
     with pytest.raises(KeyboardInterrupt):
-        perception._predict_all(tiny_study, name, model, frames, progress=False)
+        predictions._predict_all(tiny_study, name, model, frames, progress=False)
     monkeypatch.setattr(io, "write_h5", write_h5)
     assert [p for p in (perception_path(tiny_study, name, f) for f in frames) if p.is_file()] == written
     before = {p: os.stat(p).st_mtime_ns for p in written}
-    n, through_the_net, _ = perception._predict_all(tiny_study, name, model, frames, progress=False)
+    n, through_the_net, _ = predictions._predict_all(tiny_study, name, model, frames, progress=False)
     assert (n, through_the_net) == (len(frames) - 7, len(frames) - 4)
     assert {p: os.stat(p).st_mtime_ns for p in written} == before
     assert all(np.array_equal(a, b) for a, b in zip(whole, _read_predictions(tiny_study, name, frames)))
-    assert perception._predict_all(tiny_study, name, model, frames, progress=False) == (0, 0, 0.0)
+    assert predictions._predict_all(tiny_study, name, model, frames, progress=False) == (0, 0, 0.0)
 
 
 def test_predict_takes_a_tensor_batch_as_it_takes_numpy(tiny_study):
@@ -516,7 +517,7 @@ def test_float16_only_on_cuda_and_in_the_key_only_there(tiny_study, monkeypatch)
     predictions, and its keys, do not depend on it). The loader workers are never in the key; the batch always is
     (a prediction's last bits depend on it on the CPU)."""
     import monolib.device
-    from monolib.perception import segmentation, stage as perception
+    from monolib.perception import predictions, segmentation
 
     cpu, cuda = torch.device("cpu"), torch.device("cuda")
     assert not isinstance(segmentation.precision(cpu, True), torch.autocast)
@@ -536,7 +537,7 @@ def test_float16_only_on_cuda_and_in_the_key_only_there(tiny_study, monkeypatch)
         out = []
         for amp, batch, workers in [(True, 8, 2), (False, 8, 2), (True, 8, 0), (True, 3, 2)]:
             spec.amp, spec.predict_batch, spec.loader_workers = amp, batch, workers
-            out.append(perception.model_key(tiny_study, name))
+            out.append(predictions.model_key(tiny_study, name))
         return out
 
     on_cpu, on_cuda = keys(cpu), keys(cuda)
@@ -582,7 +583,7 @@ def test_a_depth_network_predicting_nan_is_an_error_not_a_cached_model(tiny_stud
     """A depth network whose predictions are NaN for 90% of the pixels: its abs_rel on the other 10% could look
     good, so the stage stops with one error naming it, and nothing marks it done (no metrics, no `_complete`);
     a sound network's share (0) is in the perception table."""
-    from monolib.perception import depth, stage as perception
+    from monolib.perception import depth, predictions
 
     name = tiny_study.perception.depth[0].name
     real = depth.predict
@@ -593,14 +594,14 @@ def test_a_depth_network_predicting_nan_is_an_error_not_a_cached_model(tiny_stud
         return out
 
     monkeypatch.setattr(depth, "predict", mostly_nan)
-    with pytest.raises(perception.NonFiniteDepth, match=rf"perception model '{name}'.*8\d\.\d+% of its predicted "
+    with pytest.raises(predictions.NonFiniteDepth, match=rf"perception model '{name}'.*8\d\.\d+% of its predicted "
                                                         r"test pixels are NaN or inf"):
-        perception.run(tiny_study, progress=False, only=[name])
-    assert not (perception.model_dir(tiny_study, name) / "metrics.json").exists()
-    assert not (perception.predictions_dir(tiny_study, name) / "_complete.json").exists()
+        predictions.run(tiny_study, progress=False, only=[name])
+    assert not (predictions.model_dir(tiny_study, name) / "metrics.json").exists()
+    assert not (predictions.predictions_dir(tiny_study, name) / "_complete.json").exists()
     monkeypatch.setattr(depth, "predict", real)
-    for f in perception.predictions_dir(tiny_study, name).rglob("*.hdf5"):
+    for f in predictions.predictions_dir(tiny_study, name).rglob("*.hdf5"):
         f.unlink()
-    table = perception.run(tiny_study, progress=False, only=[name])
+    table = predictions.run(tiny_study, progress=False, only=[name])
     share = table[(table.model == name) & (table.metric == "nonfinite_share")]["value"]
     assert len(share) == 1 and share.iloc[0] == 0.0

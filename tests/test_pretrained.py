@@ -8,7 +8,7 @@ import torch.nn.functional as F
 
 from monolib import methods
 from monolib.data.selection import select_frames
-from monolib.data.stage import ensure_dataset
+from monolib.data.dataset import ensure_dataset
 from monolib.params import load_study
 from monolib.perception import features, imagenet
 from monolib.retrieval import pretrained

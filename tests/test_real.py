@@ -191,7 +191,7 @@ def test_model_selection_on_a_study_of_folds_holds_out_volumes_of_fold_0s_traini
     are recorded, and selection.md says what was held out."""
     import math
 
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from monolib.retrieval import model_selection as ms
 
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")

@@ -227,7 +227,7 @@ def test_select_frames_takes_the_union_of_the_protocols(tmp_path):
     from hypersim_files import write_setting
 
     from monolib.data.selection import select_frames
-    from monolib.data.stage import open_dataset
+    from monolib.data.dataset import open_dataset
     from monolib.params import load_study
 
     frames = {"ai_001_001": 3, "ai_001_002": 3, "ai_002_001": 3, "ai_003_001": 2, "ai_003_002": 3, "ai_004_001": 3}

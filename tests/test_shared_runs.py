@@ -171,13 +171,13 @@ def test_the_graph_stage_counts_the_labelled_pixels_it_drops_for_their_depth(smo
     dropped pixels is exactly the labelled pixels of the block (unlabelled ones are not nodes anyway)."""
     import numpy as np
 
-    from monolib.data import selection, stage as dataset
-    from monolib.graphs import stage as scenegraphs
-    from monolib.perception import stage as perception
+    from monolib.data import dataset, selection
+    from monolib.graphs import scenegraphs
+    from monolib.perception import predictions
 
     s = load_study("smoke")
     frame = selection.select_frames(s, dataset.open_dataset(s), s.gcn.val_settings).test[0]
-    real = perception.depth_source
+    real = predictions.depth_source
 
     def with_a_hole(study, name):
         read = real(study, name)
@@ -188,7 +188,7 @@ def test_the_graph_stage_counts_the_labelled_pixels_it_drops_for_their_depth(smo
             return d
         return holed
 
-    monkeypatch.setattr(perception, "depth_source", with_a_hole)
+    monkeypatch.setattr(predictions, "depth_source", with_a_hole)
     x, pos, dropped = scenegraphs._frame_nodes((s, ["s1"], frame.key))[0]
     sem = frame.semantic
     valid_gt = np.isfinite(frame.depth) & (frame.depth > 0)

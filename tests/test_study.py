@@ -201,7 +201,7 @@ def test_perception_command_is_cached_and_draws_its_figures(smoke_study):
 
 def test_cells_with_the_graphs_of_a_smaller_threshold_are_exact_copies(smoke_study, tmp_path):
     """The runner copies a cell whose graphs equal a smaller threshold's; running it for real gives the same."""
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from monolib.graphs.build import at_threshold
     from monolib.retrieval import cell
     from monolib.study.copies import same_graphs
@@ -320,8 +320,8 @@ def test_the_layout_encoder_localizes_a_frame_of_its_database(smoke_study, tmp_p
     import torch
 
     from monolib import localize
-    from monolib.data import selection, stage as dataset
-    from monolib.graphs import stage as scenegraphs
+    from monolib.data import dataset, selection
+    from monolib.graphs import scenegraphs
     from monolib.retrieval import gcn
     from monolib.retrieval.cell import run_cell
 
@@ -353,7 +353,7 @@ def test_the_layout_encoder_localizes_a_frame_of_its_database(smoke_study, tmp_p
 def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path, capsys, monkeypatch):
     import cv2
 
-    from monolib.data import selection, stage as dataset
+    from monolib.data import dataset, selection
 
     db = tmp_path / "db"
     out = subprocess.run(MONOLIB + ["index", "smoke", "--out", str(db)], env=ENV, capture_output=True, text=True)
@@ -404,15 +404,15 @@ def test_index_and_localize_images_it_never_saw(smoke_study, tmp_path, capsys, m
 
 
 def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_path, capsys):
-    from monolib.graphs import stage as scenegraphs
-    from monolib.perception import stage as perception
+    from monolib.graphs import scenegraphs
+    from monolib.perception import predictions
 
     data = yaml.safe_load((paths.PARAMS / "smoke.yaml").read_text())
     data["gcn"].update(epochs=data["gcn"]["epochs"] + 7, lr=0.01)
     p = tmp_path / "smoke.yaml"
     p.write_text(yaml.safe_dump(data))
     s = load_study(p)
-    table = perception.run(s, progress=False)
+    table = predictions.run(s, progress=False)
     assert set(table.attrs["status"].values()) == {"cached"}
     assert "nothing to do" in capsys.readouterr().out
     # the scene graphs do not depend on the GCN either
@@ -420,7 +420,7 @@ def test_changing_only_a_gcn_parameter_redoes_no_perception(smoke_study, tmp_pat
 
 
 def test_threshold_zero_gives_graphs_without_edges_and_cells_that_run(smoke_study):
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from monolib.graphs.build import at_threshold
     from monolib.study.copies import same_graphs
     from monolib.study.runner import grid
@@ -451,7 +451,7 @@ def test_graph_sizes_table_of_the_smoke_study(smoke_study):
     """graph_sizes.csv: every scenario x threshold of the grid; nodes do not depend on the threshold, edges grow
     with it (0 at 0, every pair at inf), the means are those of the cached graphs, and `same_graphs_as` is the
     runner's rule (`monolib.study.copies.same_graphs`)."""
-    from monolib.graphs import stage as scenegraphs
+    from monolib.graphs import scenegraphs
     from monolib.study.copies import same_graphs
     from monolib.study.runner import grid
 
@@ -480,13 +480,13 @@ def test_graph_sizes_table_of_the_smoke_study(smoke_study):
 
 
 def test_smoke_study_perception_rerun_is_cached(smoke_study, capsys):
-    """perception.run on the real smoke study, twice: the second run trains and predicts nothing."""
-    from monolib.perception import stage as perception
+    """predictions.run on the real smoke study, twice: the second run trains and predicts nothing."""
+    from monolib.perception import predictions
 
     study = load_study("smoke")
-    perception.run(study, progress=False)
+    predictions.run(study, progress=False)
     capsys.readouterr()
-    again = perception.run(study, progress=False)
+    again = predictions.run(study, progress=False)
     out = capsys.readouterr().out
     assert set(again.attrs["status"].values()) == {"cached"}
-    assert f"perception: {perception.model_tag(study, 'deeplab')} cached" in out and "nothing to do" in out
+    assert f"perception: {predictions.model_tag(study, 'deeplab')} cached" in out and "nothing to do" in out

@@ -10,7 +10,7 @@ import yaml
 
 from monolib import io, paths
 from monolib.params import StudyError, load_study
-from monolib.perception import stage as perception, zoo
+from monolib.perception import predictions, zoo
 
 
 pytestmark = pytest.mark.slow  # the zoo trains networks on the smoke data
@@ -90,14 +90,14 @@ def test_a_study_with_weights_predicts_with_them(shipped, smoke_dataset, tmp_pat
     monkeypatch.setattr(paths, "RUNS", tmp_path / "runs")
     monkeypatch.setattr(paths, "FIGURES", tmp_path / "figures")
     user = load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "deeplab.pt")}}))
-    table = perception.run(user, progress=False, only=["deeplab"])
-    history = io.read_json(perception.model_dir(user, "deeplab") / "history.json")
+    table = predictions.run(user, progress=False, only=["deeplab"])
+    history = io.read_json(predictions.model_dir(user, "deeplab") / "history.json")
     assert history["source"] == str(out / "deeplab.pt") and history["epochs"] == []  # loaded, not trained
     acc = table[(table.model == "deeplab") & (table.metric == "pixel_accuracy")].value.item()
     assert acc == pytest.approx(manifests["deeplab"]["test_metrics"]["pixel_accuracy"], abs=1e-6)
     # the shipped file is part of the model's key: other weights, other predictions
-    assert manifests["deeplab"]["sha256"] in json.dumps(manifests) and perception.model_key(user, "deeplab") != \
-        perception.model_key(load_study("smoke", check_files=False), "deeplab")
+    assert manifests["deeplab"]["sha256"] in json.dumps(manifests) and predictions.model_key(user, "deeplab") != \
+        predictions.model_key(load_study("smoke", check_files=False), "deeplab")
 
 
 def test_an_altered_file_is_one_clear_error(shipped, smoke_dataset, tmp_path):
@@ -120,13 +120,13 @@ def test_weights_of_another_architecture_are_refused_when_the_perception_stage_s
     path = study_file(tmp_path, smoke_dataset, {1: {"weights": str(out / "depth_a.pt")}})
     user = load_study(path)  # a study file loads without reading weights (the study file is checked, not the zoo)
     with pytest.raises(StudyError, match=r"perception.depth\[1\].weights.*backbone file 'resnet18' spec 'resnet34'"):
-        perception.check_weights(user)
+        predictions.check_weights(user)
     with pytest.raises(StudyError, match=r"perception.depth\[1\].weights.*backbone file 'resnet18' spec 'resnet34'"):
-        perception.run(user, progress=False)  # before any work: nothing of the stage is written
+        predictions.run(user, progress=False)  # before any work: nothing of the stage is written
     assert not (tmp_path / "runs").exists()
     path = study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(out / "depth_a.pt")}})
     with pytest.raises(StudyError, match="holds a depth network"):
-        perception.check_weights(load_study(path))
+        predictions.check_weights(load_study(path))
 
 
 def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, smoke_dataset, tmp_path):
@@ -134,7 +134,7 @@ def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, 
     lone = tmp_path / "lone.pt"
     lone.write_bytes((out / "deeplab.pt").read_bytes())
     with pytest.raises(StudyError, match="no manifest lone.json"):
-        perception.check_weights(load_study(study_file(tmp_path, smoke_dataset,
+        predictions.check_weights(load_study(study_file(tmp_path, smoke_dataset,
                                                        {"segmentation": {"weights": str(lone)}})))
     with pytest.raises(StudyError, match="file not found"):
         load_study(study_file(tmp_path, smoke_dataset, {"segmentation": {"weights": str(tmp_path / "none.pt")}}))
@@ -146,7 +146,7 @@ def test_weights_without_a_manifest_or_beside_a_checkpoint_are_refused(shipped, 
 def test_training_resumes_after_its_last_epoch_with_the_same_weights(smoke_dataset, tmp_path):
     """A run stopped after its first epoch and started again ends with the weights of an uninterrupted run, bit for
     bit: the per-epoch file holds the weights, optimiser, schedule, every random state and the history."""
-    from monolib.data import selection, stage as dataset
+    from monolib.data import dataset, selection
     from monolib.perception import depth as dep
 
     s = load_study("smoke")

@@ -24,7 +24,7 @@ import torch
 
 from monolib import device as devices, paths
 from monolib.bench.common import written
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import scenegraphs
 from monolib.io import read_json
 from monolib.params import load_study
 from monolib.report.results import cell_files

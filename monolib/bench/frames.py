@@ -33,7 +33,7 @@ from monolib.localize import Localizer
 from monolib.params import load_study
 from monolib.perception import depth as depth_net
 from monolib.perception import segmentation
-from monolib.perception import stage as perception
+from monolib.perception import predictions
 from monolib.retrieval import gcn
 
 
@@ -204,7 +204,7 @@ def perception_fps(study_name: str = "quick", sizes=((256, 192), (1024, 768)), f
     out = {"study": study_name, "device": device_name(dev), "batch": spec.predict_batch,
            "loader_workers": spec.loader_workers, "amp": spec.amp and dev.type == "cuda", "threads": spec.threads,
            "networks": {}}
-    with perception._threads(spec.threads), tempfile.TemporaryDirectory(prefix="monolib_fps_") as tmp:
+    with predictions._threads(spec.threads), tempfile.TemporaryDirectory(prefix="monolib_fps_") as tmp:
         for (width, height), n in zip(sizes, frames):
             size = f"{width}x{height}"
             shown = write_frames(Path(tmp) / size, width, height, n)
@@ -220,7 +220,7 @@ def perception_fps(study_name: str = "quick", sizes=((256, 192), (1024, 768)), f
                 predict = segmentation.predict if task == "segmentation" else depth_net.predict
                 predict(model, shown[0].rgb, spec.predict_batch, amp=spec.amp)  # warm-up, one frame
                 t = time.perf_counter()
-                seconds = perception.predict_frames(model, task, shown, spec, lambda frame, prediction: None)
+                seconds = predictions.predict_frames(model, task, shown, spec, lambda frame, prediction: None)
                 wall = time.perf_counter() - t
                 out["networks"].setdefault(net_spec.name, {"task": task, "backbone": net_spec.backbone})[size] = {
                     "frames": n, "fps": round(n / wall, 2), "inference_fps": round(n / seconds, 2)}

@@ -10,7 +10,7 @@ import torch
 
 from monolib.bench.common import written
 from monolib.data import selection
-from monolib.data import stage as dataset
+from monolib.data import dataset
 from monolib.params import load_study
 from monolib.perception import features
 from monolib.retrieval import evaluate, pretrained

@@ -13,7 +13,7 @@ import torch
 from monolib import localize, methods
 from monolib.bench.common import device_name, written
 from monolib.data import selection
-from monolib.data import stage as dataset
+from monolib.data import dataset
 from monolib.device import device
 from monolib.params import load_study
 from monolib.report.results import collect

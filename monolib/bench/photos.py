@@ -14,7 +14,7 @@ import torch
 
 from monolib import io, localize, methods, paths
 from monolib.data import selection
-from monolib.data import stage as dataset
+from monolib.data import dataset
 from monolib.device import cpu_signature
 from monolib.localize import Localizer
 from monolib.params import PAPER, load_study

@@ -1,7 +1,7 @@
 """Edits of built scene graphs, one property of the data each: what `monolib.study.data_edits` changes to find
 which property of the data sets what the edges cost an encoder.
 
-Every edit takes the graphs of one study (as `monolib.graphs.stage.load` gives them: x = [NYU40 id, R, G, B, ...],
+Every edit takes the graphs of one study (as `monolib.graphs.scenegraphs.load` gives them: x = [NYU40 id, R, G, B, ...],
 the complete pairs `pair_index` / `pair_len`, `pos` when built here) and returns new graphs; the inputs are never
 changed. Node colours are the graphs' own (HDR medians in both legs of the study, the published graphs' space).
 

@@ -54,8 +54,8 @@ from pathlib import Path
 import numpy as np
 
 from monolib import paths
-from monolib.data import labels, stage as dataset
-from monolib.graphs import edits, published, stage as scenegraphs
+from monolib.data import dataset, labels
+from monolib.graphs import edits, published, scenegraphs
 from monolib.io import DataFileError, read_h5, write_text
 from monolib.params import Study, StudyError
 

@@ -28,7 +28,7 @@ import torch
 from torch import nn
 
 from monolib import versions
-from monolib.data import selection, stage as dataset
+from monolib.data import dataset, selection
 from monolib.device import device
 from monolib.io import DataFileError, atomic_path, load_cached
 from monolib.params import Study, key_of

@@ -1,6 +1,6 @@
 """The manifests of shipped weights (the zoo's ``<name>.json`` beside ``<name>.pt``): reading one and checking
 that the network a perception spec builds is the one the file holds. No torch here: the perception stage checks a
-study's weights with it when it starts (`monolib.perception.stage.check_weights`), before any work;
+study's weights with it when it starts (`monolib.perception.predictions.check_weights`), before any work;
 `monolib.perception.zoo` writes the manifests and `monolib.perception.weights` loads the weights.
 """
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Shipped weights into their network: the file's sha256 against its manifest, its architecture against the
-spec, then a strict load (`load`). Read by the perception stage (`monolib.perception.stage`) and by the zoo that writes
-the files (`monolib.perception.zoo`), which sits above it.
+spec, then a strict load (`load`). Read by the perception stage (`monolib.perception.predictions`) and by the zoo
+that writes the files (`monolib.perception.zoo`), which sits above it.
 """
 from __future__ import annotations
 

@@ -25,10 +25,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
 from monolib import io, paths
-from monolib.data import selection, stage as dataset
+from monolib.data import dataset, selection
 from monolib.device import device
 from monolib.params import Study
-from monolib.perception import depth as dep, imagenet, segmentation as seg, stage as perception
+from monolib.perception import depth as dep, imagenet, predictions, segmentation as seg
 from monolib.perception.manifests import STAGING, WeightsError, architecture, read_manifest  # noqa: F401 (zoo.*)
 from monolib.perception.weights import load  # (re-exported: zoo.load)
 
@@ -77,7 +77,7 @@ def _test_metrics(model, task: str, test_frames, images, batch: int = 16) -> dic
         pred = predict(model, images[i : i + batch], batch)
         pairs += [((f.semantic if task == "segmentation" else f.depth), p)
                   for f, p in zip(test_frames[i : i + batch], pred)]
-    metrics = perception.evaluate_segmentation(pairs) if task == "segmentation" else perception.evaluate_depth(pairs)
+    metrics = predictions.evaluate_segmentation(pairs) if task == "segmentation" else predictions.evaluate_depth(pairs)
     return {k: v for k, v in metrics.items()}
 
 
@@ -139,8 +139,8 @@ def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: boo
     manifests = {}
     test = images = None
     for name in only or zoo.model_names():
-        spec, task = perception._spec(zoo, name)
-        key = perception.model_key(zoo, name)
+        spec, task = predictions._spec(zoo, name)
+        key = predictions.model_key(zoo, name)
         old = _up_to_date(out, name, key)
         if old is not None:
             manifests[name] = old
@@ -165,7 +165,7 @@ def run(zoo: Study, evaluation: Study, out: Optional[Path] = None, progress: boo
 
         resume = paths.RUNS / zoo.name / "training" / f"{name}-{key}.pt"
         resume.parent.mkdir(parents=True, exist_ok=True)
-        with perception._threads(zoo.perception.threads):
+        with predictions._threads(zoo.perception.threads):
             model, history = mod.train(spec, sel.train, sel.val, seed=zoo.seed, progress=progress,
                                        deterministic=zoo.deterministic, resume=resume, on_epoch=on_epoch)
         train_seconds = history["train_seconds"]
@@ -233,7 +233,7 @@ def pilot(zoo: Study, evaluation: Study, out: Path, frames: int = 300,
         return table
 
     for name in only or zoo.model_names():
-        spec, task = perception._spec(zoo, name)
+        spec, task = predictions._spec(zoo, name)
         sel = selection.select_frames(zoo, zoo_ds, spec.val_settings)
         test = selection.select_frames(evaluation, eval_ds, spec.val_settings).test[::test_every]
         images = np.stack([f.rgb for f in test])
@@ -252,7 +252,7 @@ def pilot(zoo: Study, evaluation: Study, out: Path, frames: int = 300,
                 write(len(test))
 
             mod = seg if task == "segmentation" else dep
-            with perception._threads(zoo.perception.threads):
+            with predictions._threads(zoo.perception.threads):
                 mod.train(s, train, [], seed=zoo.seed, progress=progress, deterministic=zoo.deterministic,
                           on_epoch=on_epoch)
     return pd.DataFrame(rows)

@@ -17,7 +17,7 @@ import pandas as pd
 import torch
 
 from monolib import io, paths
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import scenegraphs
 from monolib.params import PAPER
 from monolib.report import comparisons
 from monolib.report.tables import csv_text, fmt_ci, threshold_label

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from monolib import io, params, paths
-from monolib.data import stage as dataset
+from monolib.data import dataset
 from monolib.io import DataFileError
 from monolib.params import PAPER
 from monolib.report.results import (

@@ -30,7 +30,7 @@ import pandas as pd
 
 from monolib import io, paths
 from monolib.data.protocols import family
-from monolib.graphs import fidelity, stage as scenegraphs
+from monolib.graphs import fidelity, scenegraphs
 from monolib.params import PAPER, Study, load_study
 from monolib.report import bootstrap, claims, results, tables
 from monolib.retrieval.grid import grid

@@ -10,7 +10,7 @@ import torch
 
 from monolib import methods, paths
 from monolib.graphs.build import pair_mask
-from monolib.graphs.stage import identical_thresholds, load_file
+from monolib.graphs.scenegraphs import identical_thresholds, load_file
 from monolib.io import write_text
 from monolib.params import Study
 from monolib.report.tables import threshold_label

@@ -10,7 +10,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from monolib.data import labels, selection, stage as dataset
+from monolib.data import dataset, labels, selection
 from monolib.io import save_figure
 
 

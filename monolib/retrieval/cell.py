@@ -24,9 +24,9 @@ import pandas as pd
 import torch
 
 from monolib import device as devices, methods, paths, versions
-from monolib.data import selection, stage as dataset
+from monolib.data import dataset, selection
 from monolib.data.protocols import family
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import scenegraphs
 from monolib.io import (
     atomic_path, load_cached, move_aside, read_json, read_json_dict, save_torch, write_json, write_text
 )
@@ -119,14 +119,14 @@ def aside(folder: Path, key: str) -> Path:
     return folder.parent.parent / ".aside" / folder.parent.name / f"{folder.name}@{key}"
 
 
-def claim(folder: Path, key: str) -> Optional[dict]:
+def take_over(folder: Path, key: str) -> Optional[dict]:
     """Make `folder` the cell of `key` without losing the cell of another key that holds it: another study file of
     the same name (other GCN settings), the same study on another device or with other code. That cell is moved
     aside (`aside`: nothing it wrote is deleted), and a cell of `key` kept aside earlier moves back.
     The cell's record when `folder` now holds the complete cell of `key`; otherwise None, and `folder` is absent,
     ready for it.
     Files of no complete cell (a killed run's) are removed. The study's lock (`monolib.locks`) keeps two runs of
-    one study from claiming at once."""
+    one study from taking one folder over at once."""
     folder = Path(folder)
     record = read_record(folder)
     if record is not None and record.get("key") == key:
@@ -268,7 +268,7 @@ def run_cell(study: Study, method: str, scenario: str, threshold: float, seed: i
     if force:
         record = None
     elif out_dir is None:
-        record = claim(folder, key)  # a cell of another key in the folder: kept aside, not lost
+        record = take_over(folder, key)  # a cell of another key in the folder: kept aside, not lost
     else:
         record = read_record(folder) if is_complete(folder, key) else None
     if record is not None:

@@ -195,7 +195,7 @@ class GraphEncoder(nn.Module):
 
     Input columns: x = [NYU40 id, R, G, B] and, with `node_layout`, the node's image column, row and log depth
     (`monolib.graphs.build.layout_graph`); edge_attr = [length] or, with `edge_layout`, [length, vertical offset,
-    angle to up]. Colours are standardised with the training set's statistics when `colour: standardised`, the
+    angle to up]. Colours are standardised with the training set's statistics when `colour_encoding: standardised`, the
     layout columns and edge attributes of the layout always (`set_colour_stats`)."""
 
     def __init__(self, spec: GCNSpec, in_channels: Optional[int] = None):
@@ -203,8 +203,8 @@ class GraphEncoder(nn.Module):
         self.spec = spec
         in_channels = in_channels or NODE_FEATURES + (NODE_LAYOUT if spec.node_layout else 0)
         self.edge_dim = EDGE_LAYOUT if spec.edge_layout else 1
-        label_dim = {"raw": 1, "embedding": 16, "onehot": NUM_CLASSES + 1}[spec.label]
-        if spec.label == "embedding":
+        label_dim = {"raw": 1, "embedding": 16, "onehot": NUM_CLASSES + 1}[spec.label_encoding]
+        if spec.label_encoding == "embedding":
             self.label_embedding = nn.Embedding(NUM_CLASSES + 1, 16)
         self.register_buffer("colour_mean", torch.zeros(in_channels - 1))
         self.register_buffer("colour_std", torch.ones(in_channels - 1))
@@ -235,8 +235,8 @@ class GraphEncoder(nn.Module):
         return GCNConv(a, b, normalize=False)  # `normalised_adjacency`, once per batch in `forward`
 
     def set_colour_stats(self, graphs: list[Data]) -> None:
-        """Training-set mean and std of the colour and layout columns of x (colours used when `colour:
-        standardised`, the layout always) and, with `edge_layout`, of the edge attributes."""
+        """Training-set mean and std of the colour and layout columns of x (colours used when
+        `colour_encoding: standardised`, the layout always) and, with `edge_layout`, of the edge attributes."""
         xs = [g.x[:, 1:] for g in graphs if g.num_nodes]
         if xs:
             c = torch.cat(xs)
@@ -251,11 +251,11 @@ class GraphEncoder(nn.Module):
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
         label, colour, layout = x[:, :1], x[:, 1:NODE_FEATURES], x[:, NODE_FEATURES:]
-        if self.spec.label == "embedding":
+        if self.spec.label_encoding == "embedding":
             label = self.label_embedding(label[:, 0].long().clamp(0, NUM_CLASSES))
-        elif self.spec.label == "onehot":
+        elif self.spec.label_encoding == "onehot":
             label = F.one_hot(label[:, 0].long().clamp(0, NUM_CLASSES), NUM_CLASSES + 1).float()
-        if self.spec.colour == "standardised":
+        if self.spec.colour_encoding == "standardised":
             colour = (colour - self.colour_mean[:NODE_FEATURES - 1]) / self.colour_std[:NODE_FEATURES - 1]
         if layout.shape[1]:
             layout = (layout - self.colour_mean[NODE_FEATURES - 1:]) / self.colour_std[NODE_FEATURES - 1:]

@@ -33,9 +33,9 @@ import torch
 from torch import nn
 
 from monolib import methods, paths, versions
-from monolib.data import selection, stage as dataset
+from monolib.data import dataset, selection
 from monolib.data.protocols import family
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import scenegraphs
 from monolib.io import write_text
 from monolib.params import PAPER, TRAINED_IMAGE_METHODS as TRAINED_IMAGE, Study, key_of
 from monolib.perception import features

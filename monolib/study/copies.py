@@ -7,7 +7,7 @@ from __future__ import annotations
 import hashlib
 
 from monolib import methods
-from monolib.graphs import stage as scenegraphs
+from monolib.graphs import scenegraphs
 from monolib.params import Study
 from monolib.retrieval import gcn
 from monolib.retrieval.grid import CellSpec

@@ -37,7 +37,7 @@ import torch
 import yaml
 
 from monolib import paths, versions
-from monolib.graphs import edits, stage as scenegraphs
+from monolib.graphs import edits, scenegraphs
 from monolib.io import read_json, write_json
 from monolib.params import Study, StudyError, key_of, load_study
 from monolib.report import data_edits as tables

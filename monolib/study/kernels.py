@@ -157,7 +157,7 @@ def reset_kernel(used: bool) -> None:
     state; afterwards it restores it: the user namespace emptied, the working directory and environment variables
     as at the start, matplotlib's figures closed and rcParams restored, every functools cache of monolib cleared.
     Kept: the source hashes of `monolib.versions.file_version` (keyed by each file's modification time and size),
-    and the graphs files this kernel has read (`monolib.graphs.stage._READ`, by path, inode, mtime and size: a
+    and the graphs files this kernel has read (`monolib.graphs.scenegraphs._READ`, by path, inode, mtime and size: a
     file's content, never stale), so that a scenario's cells in a row read its file once."""
     import functools
     import gc

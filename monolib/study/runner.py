@@ -14,16 +14,16 @@ from pathlib import Path
 
 from monolib import lockfile, locks, methods, paths
 from monolib.device import keep_freed_memory
-from monolib.data import digest, stage as dataset
-from monolib.graphs import fidelity, stage as scenegraphs
+from monolib.data import dataset, digest
+from monolib.graphs import fidelity, scenegraphs
 from monolib.io import write_json
 from monolib.params import Study, StudyError, load_study
-from monolib.perception import features, stage as perception
+from monolib.perception import features, predictions
 from monolib.perception.images import FrameRgb
 from monolib.progress import tqdm
-from monolib.report import graph_sizes, readme, viz
-from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, claim, copy_cell, graph_inputs, is_complete,
-                                    refresh_metrics, run_cell, scenario_fields)
+from monolib.report import graph_sizes, perception_figures, readme, viz
+from monolib.retrieval.cell import (IMAGE_SCENARIO, cell_key, copy_cell, graph_inputs, is_complete,
+                                    refresh_metrics, run_cell, scenario_fields, take_over)
 from monolib.retrieval.grid import CellSpec, grid  # (the grid: monolib.retrieval.grid; re-exported)
 from monolib.study import cluster
 from monolib.study.copies import same_graphs
@@ -133,7 +133,7 @@ def run_grid(study: Study, jobs: int | None = None, progress: bool = True, in_pr
 
     cells = grid(study)
     keys, scenario_keys = _cell_keys(study, cells)
-    records = {c.name: claim(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
+    records = {c.name: take_over(folder(c), keys[c.name]) for c in cells}  # another key's cell: kept aside, not lost
     todo = [c for c in cells if records[c.name] is None]
     for c in cells:
         if records[c.name] is not None:  # the reported k may have changed: from the rankings, no training
@@ -218,7 +218,7 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
     sources = {s for n in built for s in (study.scenarios[n].depth, study.scenarios[n].semantic)}
     models = [] if study.graphs_root else [m for m in study.model_names() if m in sources]
     if models:
-        perception.check_weights(study)  # before any work, the rendering included
+        predictions.check_weights(study)  # before any work, the rendering included
 
     t = time.perf_counter()
     ds = None
@@ -238,9 +238,9 @@ def stages(study: Study, scenarios: list[str] | None = None, progress: bool = Tr
     if models:
         say("[2/5] perception")
         # every model for the run's figures (its table lists them all), else those of the graphs to build
-        perception.run(study, progress=progress, only=None if figures else models, dataset=ds, rgb=rgb)
+        predictions.run(study, progress=progress, only=None if figures else models, dataset=ds, rgb=rgb)
         if figures and not study.extends:  # the paper's Figures 3 and 4 and the training curves, into figures/
-            perception.draw_figures(study, dataset=ds)
+            perception_figures.draw_figures(study, dataset=ds)
     else:
         say("[2/5] perception: not needed (ground-truth scenarios only)")
     imagenet = [m for m in study.methods if m in methods.IMAGENET]

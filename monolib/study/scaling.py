@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from monolib import methods, paths
-from monolib.graphs import build as graph, stage as scenegraphs
+from monolib.graphs import build as graph, scenegraphs
 from monolib.graphs.fidelity import read_reference
 from monolib.io import read_json, write_json, write_text
 from monolib.params import load_study

@@ -18,13 +18,13 @@ import torch
 from torch_geometric.data import Data
 
 from monolib import versions
-from monolib.data import selection, stage as dataset
+from monolib.data import dataset, selection
 from monolib.data.hypersim import HdrMissing
 from monolib.graphs import published
 from monolib.graphs.build import NODE_FEATURES, complete_graph, frame_nodes, pair_mask
 from monolib.io import DataFileError, load_cached, save_torch
 from monolib.params import Study, key_of, resolve_path
-from monolib.perception import stage as perception
+from monolib.perception import predictions
 from monolib.progress import tqdm
 
 log = logging.getLogger(__name__)
@@ -33,10 +33,10 @@ SPLITS = ("train", "val", "test")
 
 def scenario_keys(study: Study, dataset_key: Optional[str] = None) -> dict[str, str]:
     """The graph stage's key of every scenario of the study (`scenario_key`), the data stage's key and each
-    model's key (`monolib.perception.stage.model_key`) computed once and passed on."""
+    model's key (`monolib.perception.predictions.model_key`) computed once and passed on."""
     data_key = dataset_key if dataset_key is not None else dataset.dataset_key(study)
     used = sorted({n for sc in study.scenarios.values() for n in (sc.depth, sc.semantic)} - {"gt"})
-    models = {n: perception.model_key(study, n, data_key) for n in used}
+    models = {n: predictions.model_key(study, n, data_key) for n in used}
     return {sc: scenario_key(study, sc, data_key, models) for sc in study.scenarios}
 
 
@@ -52,7 +52,7 @@ def scenario_key(study: Study, scenario: str, dataset_key: Optional[str] = None,
     models = model_keys or {}
     sources = {}
     for role, name in (("depth", sc.depth), ("semantic", sc.semantic)):
-        sources[role] = "gt" if name == "gt" else models.get(name) or perception.model_key(study, name, data_key)
+        sources[role] = "gt" if name == "gt" else models.get(name) or predictions.model_key(study, name, data_key)
     pr = study.protocol  # what chooses the frames (not the k of the metrics, nor the queries' draw)
     return key_of({**study.fold_key(), "dataset": data_key, "published": published_fingerprint(study),
                    "seed": study.seed,
@@ -108,7 +108,7 @@ def _frame_nodes(args) -> list[tuple]:
 
     def source(kind: str, name: str):
         if (kind, name) not in cache:
-            read = perception.depth_source(study, name) if kind == "depth" else perception.semantic_source(study, name)
+            read = (predictions.depth_source if kind == "depth" else predictions.semantic_source)(study, name)
             cache[(kind, name)] = read(f)  # a model's missing prediction raises PredictionsMissing
         return cache[(kind, name)]
 
@@ -120,7 +120,7 @@ def _frame_nodes(args) -> list[tuple]:
             semantic = source("semantic", sc.semantic)
             colour = f.hdr if study.colour(sc_name) == "hdr" else f.rgb
             out.append(frame_nodes(colour, depth, semantic, f.camera, study.projection(sc_name)))  # (x, pos, left out)
-        except (perception.PredictionsMissing, HdrMissing):  # a model's prediction, HDR colour: never an empty graph
+        except (predictions.PredictionsMissing, HdrMissing):  # a model's prediction, HDR colour: never an empty graph
             raise
         except (DataFileError, FileNotFoundError) as exc:  # a missing file of the download: an empty graph, counted
             out.append((np.zeros((0, NODE_FEATURES), np.float32), np.zeros((0, 3), np.float32), 0, str(exc)))
@@ -155,7 +155,7 @@ def build_all(study: Study, scenarios: list[str], progress: bool = True) -> dict
         frames = [(split, f) for split in SPLITS for f in getattr(sel, split)]
         for sc in todo:  # fail before any work when a model has not predicted these frames
             for name in {study.scenarios[sc].depth, study.scenarios[sc].semantic} - {"gt"}:
-                perception.check_predictions(study, name, [f for _, f in frames])
+                predictions.check_predictions(study, name, [f for _, f in frames])
         jobs = [(study, todo, f.key) for _, f in frames]
         nodes = map_frames(_frame_nodes, jobs, study.dataset.workers, f"graphs {'+'.join(todo)}", progress)
         built = {}
