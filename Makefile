@@ -147,6 +147,7 @@ bench: install
 # where a grid cell's seconds go, on the finished quick study (figures/cell_profile.json and .md; about a minute)
 bench-cell: install
 	$(VENV)/bin/monolib bench cell --study quick --out figures/cell_profile.json
+	$(PY) -c "from monolib.report import readme; readme.update()"  # the docs' copies of it
 
 bench-grid: install
 	$(VENV)/bin/monolib bench grid --out figures/scaling.json
@@ -159,12 +160,14 @@ bench-render: install
 # query image end to end, recall@1, side by side
 bench-localizers: install
 	$(VENV)/bin/monolib bench localizers --study quick --out figures/localizers.json
+	$(PY) -c "from monolib.report import readme; readme.update()"  # the docs' copies of it
 
 # the localizer on photos (run `make study` first): recall@1 of each method it offers when quick's test frames go
 # through the photo path (JPEG quality 90, decoded, cropped, resized) against the same cells on the study's frames,
 # and one image's latency end to end on one torch thread, median and p90: figures/localize.md and .csv
 bench-localize: install
 	$(VENV)/bin/monolib bench localize --study quick --out figures/localize.md
+	$(PY) -c "from monolib.report import readme; readme.update()"  # the docs' copies of it
 
 # one imagenet_triplet cell of the quick study (run `make study` first) with glibc's malloc as it is and with the
 # project's (monolib.device.keep_freed_memory), in a new process each: seconds, system CPU, page faults, same files
