@@ -97,21 +97,16 @@ def fold_batchnorm(net: torch.nn.Module) -> int:
     from torch.nn.utils.fusion import fuse_conv_bn_eval
 
     pairs = conv_batchnorm_pairs(net)
-
-    def put(name: str, module: torch.nn.Module) -> None:
-        parent, _, leaf = name.rpartition(".")
-        setattr(net.get_submodule(parent) if parent else net, leaf, module)
-
     for conv_name, bn_name in pairs:
         conv, bn = net.get_submodule(conv_name), net.get_submodule(bn_name)
         fused = fuse_conv_bn_eval(conv, bn)
         weight = torch.empty_strided(conv.weight.shape, conv.weight.stride(), dtype=conv.weight.dtype,
                                      device=conv.weight.device)  # the layout the network was given
         fused.weight = torch.nn.Parameter(weight.copy_(fused.weight.detach()), requires_grad=False)
-        put(conv_name, fused)
+        net.set_submodule(conv_name, fused)
         after = [m for m in (getattr(bn, "drop", None), getattr(bn, "act", None))
                  if m is not None and not isinstance(m, torch.nn.Identity)]
-        put(bn_name, torch.nn.Sequential(*after) if after else torch.nn.Identity())
+        net.set_submodule(bn_name, torch.nn.Sequential(*after) if after else torch.nn.Identity())
     return len(pairs)
 
 

@@ -176,9 +176,8 @@ def paper_inside(columns: list[tuple[str, pd.DataFrame]]) -> str:
             side["above" if value > hi else "below" if value < lo else "inside"].append(at)
         total = sum(len(v) for v in side.values())
         lines.append(f"- {name}: inside the interval at {len(side['inside'])} of {total} thresholds"
-                     + "".join(f"; the paper's above it at {', '.join(side[k])}" if k == "above" else
-                               f"; the paper's below it at {', '.join(side[k])}" for k in ("above", "below")
-                               if side[k]) + ".")
+                     + "".join(f"; the paper's {k} it at {', '.join(side[k])}" for k in ("above", "below") if side[k])
+                     + ".")
     return "\n".join(lines) + "\n"
 
 
