@@ -25,8 +25,9 @@ sibling setting (the `siblings` protocol).
 Every number that reaches a written file is computed with `monolib.data.exact` (products, norms, sin, exp, log in
 float64 from correctly rounded elementwise operations) and rounded once to the stored dtype, so the files are the
 same, bit for bit, whatever SIMD kernels numpy and OpenBLAS pick on the CPU; Embree casts every ray with its AVX2
-kernels whatever the CPU's widest ISA (`raycast`). `tests/test_bitexact.py` checks both. The data stage does not use
-torch.
+kernels whatever the CPU's widest ISA (`raycast`), and with ``dataset.coplanar: exact`` the face a ray sees where
+faces tie is decided in float64 (`raycast.ExactHits`), not by the vendor's approximate reciprocal.
+`tests/test_bitexact.py` checks these. The data stage does not use torch.
 
 Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to
 the setting's asset units (``meters_per_asset_unit`` = 0.01 or 0.0254) when written, as in Hypersim's
@@ -40,8 +41,8 @@ The modules, in the order they build on each other (each imports only those abov
   (`make_layout`: doors, windows, furniture, lights);
 - `mesh`: the triangle mesh of a setting, its annex and the outside, with classes, instances and materials
   (`build_mesh`);
-- `raycast`: the ray caster, Embree pinned to its AVX2 kernels so that every x86 CPU with AVX2 casts the same
-  hits (`RayCaster`);
+- `raycast`: the ray caster, Embree pinned to its AVX2 kernels so that every AMD CPU with AVX2 casts the same
+  hits, and the float64 decision of ties for every x86 CPU (`RayCaster`, `ExactHits`);
 - `render`: ray casting and shading (`Renderer`, `render_frame`);
 - `cameras`: camera models, trajectories (`make_trajectories`, `view_score`) and exposures;
 - `setting`: one setting built, rendered and written in Hypersim's layout (`render_setting`);

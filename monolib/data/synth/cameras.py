@@ -55,7 +55,7 @@ PROBE_W, PROBE_H = 16, 12
 def view_score(r: Renderer, eye: np.ndarray, R: np.ndarray, probe: np.ndarray) -> float:
     """Hypersim's score of a candidate view: (share of valid pixels)^2 x (distinct objects seen), on a 16x12 probe;
     a view closer than 1 m to what it faces (a wall at arm's length) scores less."""
-    tri, t = r.cast(eye, exact.matmul(probe, R.T))
+    tri, t = r.cast(eye, exact.matmul(probe, R.T), (PROBE_H, PROBE_W))
     hit = tri >= 0
     if not hit.any():
         return 0.0
@@ -145,7 +145,7 @@ def setting_exposure(r: Renderer, scenes: list, compensation: float = 0.7, targe
     values = []
     for eyes, Rs, _looks in scenes:
         d = exact.matmul(rays, Rs[0].T)
-        tri, t = r.cast(eyes[0], d)
+        tri, t = r.cast(eyes[0], d, (24, 32))
         hit = tri >= 0
         if hit.any():
             colour = r.shade(tri[hit], eyes[0] + d[hit] * t[hit, None], d[hit])

@@ -16,22 +16,30 @@ from monolib.data.synth.raycast import RayCaster
 from monolib.data.synth.rooms import Layout
 
 
-class Renderer:
-    """Ray caster + shader for one setting's mesh."""
+COPLANAR = ("embree", "exact")  # who decides a first hit where faces tie (`raycast`; the study file's dataset.coplanar)
 
-    def __init__(self, mesh: SceneMesh, lay: Layout):
+
+class Renderer:
+    """Ray caster + shader for one setting's mesh. `coplanar`: where faces of two parts share a plane, the face a
+    ray sees is the one Embree's kernels report (``embree``: on ties, the CPU's rounding decides) or the one
+    `raycast.ExactHits` decides in float64 (``exact``: ties decided alike on every CPU)."""
+
+    def __init__(self, mesh: SceneMesh, lay: Layout, coplanar: str = "embree"):
+        if coplanar not in COPLANAR:
+            raise ValueError(f"coplanar: {coplanar!r}, expected one of {', '.join(COPLANAR)}")
         import trimesh
 
         self.mesh = mesh
         self.lay = lay
         self.normals = np.asarray(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).face_normals)
         self.v0 = mesh.vertices[mesh.faces[:, 0]]
-        self.caster = RayCaster(mesh.vertices, mesh.faces)
+        self.caster = RayCaster(mesh.vertices, mesh.faces, owner=mesh.face_part if coplanar == "exact" else None)
 
-    def cast(self, origin: np.ndarray, dirs: np.ndarray):
-        """Primary rays from one origin: (face index or -1, distance along unit dirs)."""
+    def cast(self, origin: np.ndarray, dirs: np.ndarray, shape: Optional[tuple[int, int]] = None):
+        """Primary rays from one origin: (face index or -1, distance along unit dirs); `shape`: the rays are an
+        image's (rows, columns), row by row."""
         o = np.broadcast_to(origin, dirs.shape)
-        tri = self.caster.first(o, dirs)
+        tri = self.caster.first(o, dirs, shape)
         hit = tri >= 0
         t = np.full(len(dirs), np.nan)
         n = self.normals[tri[hit]]
@@ -128,7 +136,7 @@ def render_frame(r: Renderer, rays_cam: np.ndarray, eye: np.ndarray, R: np.ndarr
     Hh, Ww = rays_cam.shape[:2]
     t0 = time.perf_counter()
     d = exact.normalize(exact.matmul(rays_cam.reshape(-1, 3), R.T))
-    tri, t = r.cast(eye, d)
+    tri, t = r.cast(eye, d, (Hh, Ww))
     t1 = time.perf_counter()
     hit = tri >= 0
     pts = eye + d[hit] * t[hit, None]
