@@ -27,6 +27,7 @@ import pandas as pd
 
 from monolib import paths
 from monolib.data import digest
+from monolib.device import cpu_signature
 from monolib.report import claims as claims_mod
 from monolib.report.results import SUMMARY_KEYS
 
@@ -113,7 +114,9 @@ def _dataset(v: Verdict, fresh: Path, committed: Path) -> None:
                          "under another key: the dataset stage's code or libraries changed, its files did not)")
         return
     v.dataset.append(f"dataset: differs from the committed one in {len(lines)} place(s) (sha256 {b['sha256'][:16]}, "
-                     f"committed {a['sha256'][:16]})")
+                     f"committed {a['sha256'][:16]}), rendered here on {cpu_signature()}: with `dataset.coplanar: "
+                     "embree` the dataset is bit for bit only on CPUs of the vendor that rendered the committed one "
+                     "(docs/reproducibility.md); the means below say whether the results stayed within their intervals")
     v.problems += [f"dataset: {line}" for line in lines]
 
 
