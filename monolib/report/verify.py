@@ -114,9 +114,9 @@ def _dataset(v: Verdict, fresh: Path, committed: Path) -> None:
                          "under another key: the dataset stage's code or libraries changed, its files did not)")
         return
     v.dataset.append(f"dataset: differs from the committed one in {len(lines)} place(s) (sha256 {b['sha256'][:16]}, "
-                     f"committed {a['sha256'][:16]}), rendered here on {cpu_signature()}: with `dataset.coplanar: "
-                     "embree` the dataset is bit for bit only on CPUs of the vendor that rendered the committed one "
-                     "(docs/reproducibility.md); the means below say whether the results stayed within their intervals")
+                     f"committed {a['sha256'][:16]}), rendered here on {cpu_signature()} (with `dataset.coplanar: "
+                     "embree`, the default, the dataset is bit for bit only on CPUs of the vendor that rendered the "
+                     "committed one: docs/reproducibility.md); the means below say whether the results held")
     v.problems += [f"dataset: {line}" for line in lines]
 
 
