@@ -36,6 +36,7 @@ robust mode), and a tie between faces that none of the candidates above names.
 from __future__ import annotations
 
 import ctypes
+import functools
 import glob
 import os
 import sys
@@ -50,6 +51,7 @@ _PINNED = "pinned"
 _warned = False
 
 
+@functools.lru_cache(maxsize=None)
 def _embree_library() -> ctypes.CDLL:
     import embreex
 
@@ -62,7 +64,18 @@ def _embree_library() -> ctypes.CDLL:
     lib.rtcNewDevice.argtypes = [ctypes.c_char_p]
     lib.rtcReleaseDevice.argtypes = [ctypes.c_void_p]
     lib.rtcGetDeviceError.argtypes = [ctypes.c_void_p]
+    lib.rtcSetSceneFlags.argtypes = [ctypes.c_void_p, ctypes.c_int]
+    lib.rtcGetSceneFlags.argtypes = [ctypes.c_void_p]
     return lib
+
+
+def _first_field(obj, what: str) -> ctypes.c_void_p:
+    """The pointer an embreex object holds first after its Python header (an `EmbreeDevice`'s device, an
+    `EmbreeScene`'s scene), as a writable ctypes slot; the object's size is checked to hold one."""
+    if type(obj).__basicsize__ < object.__basicsize__ + ctypes.sizeof(ctypes.c_void_p):
+        raise RuntimeError(f"embreex's {what} holds no pointer after its header: this embreex is not the one the ray "
+                           "caster knows (see requirements.lock)")
+    return ctypes.c_void_p.from_address(id(obj) + object.__basicsize__)
 
 
 def cpu_has_isa(isa: str = ISA) -> bool:
@@ -99,7 +112,7 @@ def device(isa: Optional[str] = ISA, config: str = ""):
     new = lib.rtcNewDevice(cfg.encode())
     if not new or lib.rtcGetDeviceError(new) != 0:
         raise RuntimeError(f"Embree refused the device configuration {cfg!r}")
-    slot = ctypes.c_void_p.from_address(id(dev) + object.__basicsize__)
+    slot = _first_field(dev, "EmbreeDevice")
     old, slot.value = slot.value, new
     lib.rtcReleaseDevice(old)
     return dev
@@ -113,12 +126,7 @@ def set_robust(scene) -> None:
     watertight triangle tests (no ray slips through an edge two faces share, whatever the reciprocal's last bits).
     The scene pointer is the object's first field; Embree's own report of the flags checks the write."""
     lib = _embree_library()
-    lib.rtcSetSceneFlags.argtypes = [ctypes.c_void_p, ctypes.c_int]
-    lib.rtcGetSceneFlags.argtypes = [ctypes.c_void_p]
-    if type(scene).__basicsize__ < object.__basicsize__ + ctypes.sizeof(ctypes.c_void_p):
-        raise RuntimeError("embreex's EmbreeScene holds no scene pointer: this embreex is not the one the ray caster "
-                           "knows (see requirements.lock)")
-    pointer = ctypes.c_void_p.from_address(id(scene) + object.__basicsize__).value
+    pointer = _first_field(scene, "EmbreeScene").value
     lib.rtcSetSceneFlags(pointer, RTC_SCENE_FLAG_ROBUST)
     if lib.rtcGetSceneFlags(pointer) != RTC_SCENE_FLAG_ROBUST:
         raise RuntimeError("Embree did not take the robust flag: this embreex is not the one the ray caster knows")
@@ -189,7 +197,8 @@ class ExactHits:
                                        + self.neighbours.indices)
         # pairs of one plane, of two owners, whose boxes overlap by more than the tolerance: where a point deep inside
         # one face can lie inside the other; `same`: the two face the same side
-        i, j = (plane_faces[plane].tocoo().row, plane_faces[plane].tocoo().col)
+        same_plane = plane_faces[plane].tocoo()
+        i, j = same_plane.row, same_plane.col
         pair = (self.owner[i] != self.owner[j]) & self.valid[i] & self.valid[j]
         pair &= ((tri.min(axis=1)[i] + CONTAIN_TOLERANCE < tri.max(axis=1)[j])
                  & (tri.min(axis=1)[j] + CONTAIN_TOLERANCE < tri.max(axis=1)[i])).all(axis=1)

@@ -16,24 +16,19 @@ from monolib.data.synth.raycast import RayCaster
 from monolib.data.synth.rooms import Layout
 
 
-COPLANAR = ("embree", "exact")  # who decides a first hit where faces tie (`raycast`; the study file's dataset.coplanar)
-
-
 class Renderer:
-    """Ray caster + shader for one setting's mesh. `coplanar`: where faces of two parts share a plane, the face a
-    ray sees is the one Embree's kernels report (``embree``: on ties, the CPU's rounding decides) or the one
-    `raycast.ExactHits` decides in float64 (``exact``: ties decided alike on every CPU)."""
+    """Ray caster + shader for one setting's mesh. Where faces tie for a ray (two parts' faces in one plane, or faces
+    meeting at an edge), the face it sees is the one Embree's kernels report (the CPU's rounding decides) or, with
+    `exact_ties` (a study's ``dataset.coplanar: exact``), the one `raycast.ExactHits` decides in float64."""
 
-    def __init__(self, mesh: SceneMesh, lay: Layout, coplanar: str = "embree"):
-        if coplanar not in COPLANAR:
-            raise ValueError(f"coplanar: {coplanar!r}, expected one of {', '.join(COPLANAR)}")
+    def __init__(self, mesh: SceneMesh, lay: Layout, exact_ties: bool = False):
         import trimesh
 
         self.mesh = mesh
         self.lay = lay
         self.normals = np.asarray(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).face_normals)
         self.v0 = mesh.vertices[mesh.faces[:, 0]]
-        self.caster = RayCaster(mesh.vertices, mesh.faces, owner=mesh.face_part if coplanar == "exact" else None)
+        self.caster = RayCaster(mesh.vertices, mesh.faces, owner=mesh.face_part if exact_ties else None)
 
     def cast(self, origin: np.ndarray, dirs: np.ndarray, shape: Optional[tuple[int, int]] = None):
         """Primary rays from one origin: (face index or -1, distance along unit dirs); `shape`: the rays are an
