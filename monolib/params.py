@@ -168,9 +168,10 @@ class DatasetSpec:
     dim_fraction: Annotated[Number, _meaning("synth: share of dim settings", ge=0, le=1)] = 0.2
     tilt_shift_settings: Annotated[Int, _meaning("synth: settings rendered with ai_037_002's tilt-shift camera")] = 2
     coplanar: Annotated[Literal["embree", "exact"], _meaning(
-        "synth: who decides the face a ray sees where faces touch or share a plane: embree (its float32 kernels: "
-        "the CPU's rounding decides ties) or exact (float64: the same on every CPU; monolib.data.synth.raycast)"
-    )] = "embree"
+        "synth: who decides the face a ray (and a shadow ray) meets where faces touch or share a plane: exact "
+        "(float64: the same on every CPU; monolib.data.synth.raycast) or embree (its float32 kernels: the CPU's "
+        "rounding decides ties; the renderer of the studies committed before exact)"
+    )] = "exact"
     base_train_settings: Annotated[Optional[Int], _meaning(
         "synth: the test split and the first this-many training settings (1 .. train_settings) planned as in a "
         "study of this many (quick: 48), the rest after them with their own draws: a larger training split, quick's "

@@ -65,7 +65,7 @@ def _tiny_study():
 
     ds = SimpleNamespace(width=64, height=48, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
                          frames_per_setting=4, train_frames_per_setting=4, dim_fraction=0.0, tilt_shift_settings=0,
-                         base_train_settings=None, coplanar="embree", workers=1)
+                         base_train_settings=None, coplanar="exact", workers=1)
     return SimpleNamespace(seed=3, dataset=ds)
 
 

@@ -28,8 +28,8 @@ def dataset_key(study: Study) -> str:
         spec.pop(where)
     if spec["base_train_settings"] is None:  # in the key only where a study sets it (it changes no other plan)
         spec.pop("base_train_settings")
-    if spec["coplanar"] == "embree":  # likewise: the keys of the studies rendered before the choice existed
-        spec.pop("coplanar")
+    if spec["coplanar"] == "embree" or study.dataset.source != "synth":  # likewise: the keys of the studies rendered
+        spec.pop("coplanar")  # before the choice existed, and of data this project does not render
     if study.dataset.source != "synth":
         # a real dataset's `train_settings` is a subsample of its training settings (None: all of them), under its
         # own name; `train_settings` holds the mini-Hypersim's default, as in the keys of every study without one

@@ -115,8 +115,9 @@ def _dataset(v: Verdict, fresh: Path, committed: Path) -> None:
         return
     v.dataset.append(f"dataset: differs from the committed one in {len(lines)} place(s) (sha256 {b['sha256'][:16]}, "
                      f"committed {a['sha256'][:16]}), rendered here on {cpu_signature()} (with `dataset.coplanar: "
-                     "embree`, the default, the dataset is bit for bit only on CPUs of the vendor that rendered the "
-                     "committed one: docs/reproducibility.md); the means below say whether the results held")
+                     "exact`, the default, the dataset is the same on every x86 CPU measured; with `embree`, only on "
+                     "CPUs of the vendor that rendered it: docs/reproducibility.md); the means below say whether the "
+                     "results held")
     v.problems += [f"dataset: {line}" for line in lines]
 
 

@@ -24,9 +24,10 @@ sibling setting (the `siblings` protocol).
 
 Every number that reaches a written file is computed with `monolib.data.exact` (products, norms, sin, exp, log in
 float64 from correctly rounded elementwise operations) and rounded once to the stored dtype, so the files are the
-same, bit for bit, whatever SIMD kernels numpy and OpenBLAS pick on the CPU; Embree casts every ray with its AVX2
-kernels whatever the CPU's widest ISA (`raycast`), and with ``dataset.coplanar: exact`` the face a ray sees where
-faces tie is decided in float64 (`raycast.ExactHits`), not by the vendor's approximate reciprocal.
+same, bit for bit, whatever SIMD kernels numpy and OpenBLAS pick on the CPU; and with ``dataset.coplanar: exact``
+(the default) the face each ray meets and whether a shadow ray is blocked are decided in float64
+(`raycast.ExactHits`), Embree only naming the candidates, so that neither Embree's kernels nor the vendor's
+approximate reciprocal decide a tie (`raycast`).
 `tests/test_bitexact.py` checks these. The data stage does not use torch.
 
 Everything is built in metres in a z-up world with the floor at z = 0; positions and camera centres are converted to

@@ -148,7 +148,7 @@ def setting_exposure(r: Renderer, scenes: list, compensation: float = 0.7, targe
         tri, t = r.cast(eyes[0], d, (24, 32))
         hit = tri >= 0
         if hit.any():
-            colour = r.shade(tri[hit], eyes[0] + d[hit] * t[hit, None], d[hit])
+            colour = r.shade(tri[hit], eyes[0] + d[hit] * t[hit, None], d[hit], ((24, 32), np.flatnonzero(hit)))
             values.append(exact.matmul(colour, np.array([0.3, 0.59, 0.11])))
     if not values:
         return 1.0

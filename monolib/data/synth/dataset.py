@@ -108,7 +108,7 @@ def plan(study) -> list[dict]:
         s["dim"] = i in dim_set
         s["tilt_shift"] = i in tilt_set
         s["meters_per_asset_unit"] = 0.0254 if i % 4 == 2 else 0.01
-        if ds.coplanar != "embree":  # (in a setting's plan, and so its key, only where a study sets it)
+        if ds.coplanar != "embree":  # a plan without it is Embree's, as every plan before the choice existed
             s["coplanar"] = ds.coplanar
     return settings
 
@@ -313,7 +313,7 @@ def benchmark(width: int = 256, height: int = 192, frames: int = 20, seed: int =
     """Render one setting's frames into a temporary folder; print and return frames per second by stage."""
     ds = SimpleNamespace(width=width, height=height, train_settings=0, test_settings=1, test_siblings=0, family_size=1,
                          frames_per_setting=frames, train_frames_per_setting=frames, dim_fraction=0.0,
-                         tilt_shift_settings=0, base_train_settings=None, coplanar="embree", workers=1)
+                         tilt_shift_settings=0, base_train_settings=None, coplanar="exact", workers=1)
     study = SimpleNamespace(seed=seed, dataset=ds)
     s = plan(study)[0]
     timing: dict = {}

@@ -18,8 +18,9 @@ from monolib.data.synth.rooms import Layout
 
 class Renderer:
     """Ray caster + shader for one setting's mesh. Where faces tie for a ray (two parts' faces in one plane, or faces
-    meeting at an edge), the face it sees is the one Embree's kernels report (the CPU's rounding decides) or, with
-    `exact_ties` (a study's ``dataset.coplanar: exact``), the one `raycast.ExactHits` decides in float64."""
+    meeting at an edge) or a shadow ray grazes an edge, the answer is Embree's (the CPU's rounding decides) or, with
+    `exact_ties` (``dataset.coplanar: exact``, the default), the one `raycast.ExactHits` decides in float64 (for an
+    image's rays and their shadow rays, with the neighbouring pixels' faces as candidates)."""
 
     def __init__(self, mesh: SceneMesh, lay: Layout, exact_ties: bool = False):
         import trimesh
@@ -41,15 +42,17 @@ class Renderer:
         t[hit] = exact.dot(self.v0[tri[hit]] - origin, n) / exact.dot(dirs[hit], n)
         return tri, t
 
-    def visible(self, origin: np.ndarray, dirs: np.ndarray, dist: np.ndarray) -> np.ndarray:
-        """Whether nothing lies between each origin and the point `dist` along its unit direction (shadow rays)."""
-        return ~self.caster.occluded(origin, dirs, dist)
+    def visible(self, origin: np.ndarray, dirs: np.ndarray, dist: np.ndarray, image: Optional[tuple] = None):
+        """Whether nothing lies between each origin and the point `dist` along its unit direction (shadow rays;
+        `image`: (shape, pixels), the image pixel each ray starts from, which decides ties with `exact_ties`)."""
+        shape, pixels = image if image is not None else (None, None)
+        return ~self.caster.occluded(origin, dirs, dist, shape, pixels)
 
     def _lit_from(self, origin: np.ndarray, n: np.ndarray, idx: np.ndarray, point: np.ndarray, margin: float,
-                  facing: Optional[np.ndarray] = None):
+                  facing: Optional[np.ndarray] = None, image: Optional[tuple] = None):
         """Of the points `idx` (offset `origin`, normals `n`), those that face `point` and see it (a shadow ray
         stopping `margin` short of it; `facing`: and that lie in front of a window of that inward normal): their
-        indices, cosine towards the point, distance and unit direction."""
+        indices, cosine towards the point, distance and unit direction. `image`: (shape, pixel of each point)."""
         L = point - origin[idx]
         dist = exact.norm(L)
         L /= dist[:, None]
@@ -58,11 +61,12 @@ class Renderer:
         if facing is not None:
             lit &= -exact.matmul(L, facing) > 0
         k = idx[lit]
-        vis = self.visible(origin[k], L[lit], dist[lit] - margin)
+        vis = self.visible(origin[k], L[lit], dist[lit] - margin, None if image is None else (image[0], image[1][k]))
         return k[vis], cos[lit][vis], dist[lit][vis], L[lit][vis]
 
-    def shade(self, tri: np.ndarray, pts: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """(n, 3) linear radiance of hit points `pts` on faces `tri` seen along `dirs`.
+    def shade(self, tri: np.ndarray, pts: np.ndarray, dirs: np.ndarray, image: Optional[tuple] = None) -> np.ndarray:
+        """(n, 3) linear radiance of hit points `pts` on faces `tri` seen along `dirs`; `image`: (shape, pixels), the
+        image's (rows, columns) and the pixel of each point, which shadow rays read to decide ties.
 
         Inside: the light bounced around the rooms (`Layout.ambient`), darker in the corners and near the floor;
         every point light (ceiling fixtures and lamps) with its inverse-square fall-off and the shadows of what
@@ -100,17 +104,18 @@ class Renderer:
         origin = pts + n * 2e-3
         idx_in = np.flatnonzero(inside)
         for lp, lrgb in lay.lights:
-            k, cos, dist, _L = self._lit_from(origin, n, idx_in, lp, 0.05)
+            k, cos, dist, _L = self._lit_from(origin, n, idx_in, lp, 0.05, image=image)
             light[k] += lrgb * (cos / np.maximum(dist * dist, 0.09))[:, None]
         for centre, normal, area in lay.windows:
-            k, cos, dist, L = self._lit_from(origin, n, idx_in, centre, 0.02, facing=normal)
+            k, cos, dist, L = self._lit_from(origin, n, idx_in, centre, 0.02, facing=normal, image=image)
             w = cos * -exact.matmul(L, normal) * area / (math.pi * np.maximum(dist * dist, area))
             light[k] += lay.sky * w[:, None]
         if lay.sun is not None:
             sun_dir, sun_rgb = lay.sun
             cos = exact.matmul(n, sun_dir)
             lit = np.flatnonzero(cos > 0)
-            vis = self.visible(origin[lit], np.broadcast_to(sun_dir, (len(lit), 3)), np.full(len(lit), 500.0))
+            vis = self.visible(origin[lit], np.broadcast_to(sun_dir, (len(lit), 3)), np.full(len(lit), 500.0),
+                               None if image is None else (image[0], image[1][lit]))
             light[lit[vis]] += sun_rgb * cos[lit[vis], None]
         glow = emission * (1.0 if lay.lights else 0.1)
         return albedo * light + glow
@@ -136,7 +141,7 @@ def render_frame(r: Renderer, rays_cam: np.ndarray, eye: np.ndarray, R: np.ndarr
     hit = tri >= 0
     pts = eye + d[hit] * t[hit, None]
     col = np.zeros((len(d), 3))
-    col[hit] = r.shade(tri[hit], pts, d[hit]) * exposure
+    col[hit] = r.shade(tri[hit], pts, d[hit], ((Hh, Ww), np.flatnonzero(hit))) * exposure
     col[~hit] = r.lay.sky * exposure * (1.0 + 0.6 * np.clip(d[~hit, 2:3], 0, 1))  # the sky: no depth, no entity
     pos = np.full((len(d), 3), np.nan)
     pos[hit] = pts

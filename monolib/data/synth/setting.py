@@ -25,7 +25,7 @@ def build_setting(s: dict, seed: int):
     fam = make_family(seed, s["family"], s["room_type"])
     lay = make_layout(fam, seed, s["index"], s["dim"])
     mesh = build_mesh(fam, lay, seed, s["index"])
-    r = Renderer(mesh, lay, exact_ties=s.get("coplanar") == "exact")  # (in a plan only where a study sets it)
+    r = Renderer(mesh, lay, exact_ties=s.get("coplanar") == "exact")  # (a plan without it: embree)
     scenes = make_trajectories(lay, s["frames"], seed, s["index"], r)
     return fam, lay, mesh, scenes, r
 
