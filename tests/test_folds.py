@@ -110,7 +110,10 @@ def test_the_mini_hypersim_refuses_folds_and_keeps_its_keys(monkeypatch):
     for name, keys in expected.items():
         s = load_study(name, check_files=False)
         assert s.folds() == [None] and {c.fold for c in grid(s)} == {None}
+        exact_key = dataset.dataset_key(s)
+        s.dataset.coplanar = "embree"  # the renderer of the code these keys were computed with
         dk = dataset.dataset_key(s)
+        assert exact_key != dk  # the renderer is in the key: a cache of the other one is not handed back
         got = (dk, scenegraphs.scenario_key(s, "s1", dk, {m: "M" for m in s.model_names()}))
         assert got == keys
         assert s.fold_key() == {}
